@@ -1,0 +1,249 @@
+"""Figures in the style of the paper's Fig. 6-10 (PNG + SVG, one question each).
+
+* ``fig6_poi_vs_corners``: mask POIs vs Shi-Tomasi and Harris corners on the first frame.
+* ``fig7_gradient_magnitude``: Sobel gradient magnitude of the first frame.
+* ``fig8_time_histories``: each method against the reference, and the errors.
+* ``fig9_psd``: Welch PSDs (log scale) with the model's modes and their aliases.
+* ``fig10_occlusion``: displacement around the occlusion, occluded span shaded.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from refflow.io import atomic_path  # noqa: E402
+
+from .metrics import DEFAULTS, occlusion_spans  # noqa: E402
+from .readers import model_modes_hz, read_json, read_sensor, read_track, read_truth, track_mm  # noqa: E402
+from .spectra import alias_frequency, welch_psd  # noqa: E402
+from .sync import align, datum_offset, lowpass  # noqa: E402
+
+REF_STYLE = {"color": "black", "lw": 1.0, "label": "reference (laser, 30 Hz low-pass)"}
+
+
+def save(fig: plt.Figure, out_dir: Path, name: str) -> list[Path]:
+    """Write ``name.png`` and ``name.svg`` atomically; close the figure."""
+    paths = []
+    for ext in ("png", "svg"):
+        path = out_dir / f"{name}.{ext}"
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=150, bbox_inches="tight", format=ext)
+        paths.append(path)
+    plt.close(fig)
+    return paths
+
+
+def _shade(ax, time_s: np.ndarray, occluded: np.ndarray, label: bool = False) -> None:
+    for i, (a, b) in enumerate(occlusion_spans(occluded)):
+        end = time_s[b] if b < time_s.size else time_s[-1]
+        ax.axvspan(time_s[a], end, color="0.85", zorder=0, label="occluded" if label and i == 0 else None)
+
+
+def fig_time_histories(runs: list[dict[str, Any]], truth: dict[str, np.ndarray], out_dir: Path) -> list[Path]:
+    n = len(runs)
+    fig, axes = plt.subplots(n + 1, 1, figsize=(10, 2.6 * (n + 1)), sharex=True)
+    axes = np.atleast_1d(axes)
+    for ax, run in zip(axes[:-1], runs, strict=False):
+        _shade(ax, run["t"], run["occluded"])
+        ax.plot(run["t"], run["ref"], **REF_STYLE)
+        ax.plot(run["t"], run["meas"], lw=0.9, color=run["color"], label=f"{run['name']} (camera)")
+        ax.set_ylabel("displacement x (mm)")
+        ax.set_title(f"Reference vs {run['name']}: RMSE {run['rmse_mm']:.4f} mm")
+        ax.legend(loc="upper right", fontsize=8)
+    ax = axes[-1]
+    for run in runs:
+        ax.plot(run["t"], run["meas"] - run["ref"], lw=0.9, color=run["color"], label=run["name"])
+    _shade(ax, runs[0]["t"], runs[0]["occluded"])
+    ax.axhline(0, color="0.5", lw=0.5)
+    ax.set_ylabel("error (mm)\nmeasured - reference")
+    ax.set_xlabel("camera time (s)")
+    ax.set_title("Displacement error")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    return save(fig, out_dir, "fig8_time_histories")
+
+
+def fig_psd(runs: list[dict[str, Any]], fps: float, modes_hz: np.ndarray | None, out_dir: Path) -> list[Path]:
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    run0 = runs[0]
+    ok = np.isfinite(run0["ref"])
+    f, p = welch_psd(run0["ref"][ok], fps, segment_s=min(20.0, run0["t"][ok][-1] - run0["t"][ok][0]))
+    ax.semilogy(f, p, color="black", lw=1.2, label="reference (laser, at frame times)")
+    for run in runs:
+        ok = np.isfinite(run["ref"])
+        good = ok & run["valid"]
+        series = np.interp(run["t"][ok], run["t"][good], run["meas"][good])
+        f, p = welch_psd(series, fps, segment_s=min(20.0, run["t"][ok][-1] - run["t"][ok][0]))
+        ax.semilogy(f, p, lw=0.9, color=run["color"], label=run["name"])
+    if modes_hz is not None:
+        for i, fm in enumerate(modes_hz, start=1):
+            if fm <= fps / 2:
+                ax.axvline(fm, color="tab:green", ls="--", lw=0.8)
+                ax.text(fm, 0.97, f" mode {i}\n {fm:.1f} Hz", transform=ax.get_xaxis_transform(),
+                        va="top", fontsize=8, color="tab:green")
+            else:
+                fa = alias_frequency(fm, fps)
+                ax.axvline(fa, color="tab:red", ls=":", lw=0.9)
+                ax.text(fa, 0.80, f" mode {i} alias\n {fm:.1f} -> {fa:.1f} Hz", transform=ax.get_xaxis_transform(),
+                        va="top", fontsize=8, color="tab:red")
+    ax.axvspan(0, DEFAULTS["lowfreq_hz"], color="0.9", zorder=0, label="0-0.1 Hz (drift)")
+    ax.set_xlim(0, fps / 2)
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("PSD of displacement (mm$^2$/Hz)")
+    ax.set_title(f"Welch PSD at {fps:g} fps (Nyquist {fps / 2:g} Hz)")
+    ax.legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    return save(fig, out_dir, "fig9_psd")
+
+
+def fig_occlusion(runs: list[dict[str, Any]], out_dir: Path, *, margin_s: float = 3.0) -> list[Path]:
+    spans = occlusion_spans(runs[0]["occluded"])
+    if not spans:
+        return []
+    a, b = max(spans, key=lambda s: s[1] - s[0])
+    t = runs[0]["t"]
+    t0, t1 = t[a] - margin_s, t[min(b, t.size - 1)] + margin_s
+    fig, axes = plt.subplots(len(runs), 1, figsize=(10, 2.8 * len(runs)), sharex=True, squeeze=False)
+    for ax, run in zip(axes[:, 0], runs, strict=False):
+        sel = (run["t"] >= t0) & (run["t"] <= t1)
+        _shade(ax, run["t"], run["occluded"], label=True)
+        ax.plot(run["t"][sel], run["ref"][sel], **REF_STYLE)
+        ax.plot(run["t"][sel], run["meas"][sel], lw=0.9, color=run["color"], label=run["name"])
+        bad = sel & ~run["valid"]
+        if bad.any():
+            ax.plot(run["t"][bad], np.zeros(bad.sum()), "|", color="tab:red", ms=8, label="flagged valid=0")
+        ax.set_ylabel("displacement x (mm)")
+        ax.set_title(f"{run['name']} through the occlusion")
+        ax.legend(loc="upper right", fontsize=8)
+    axes[-1, 0].set_xlabel("camera time (s)")
+    fig.tight_layout()
+    return save(fig, out_dir, "fig10_occlusion")
+
+
+def _first_frame(video: str | os.PathLike[str]) -> np.ndarray:
+    import cv2
+    cap = cv2.VideoCapture(str(video))
+    ok, frame = cap.read()
+    cap.release()
+    if not ok:
+        raise ValueError(f"{video}: could not read the first frame")
+    return cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
+
+
+def fig_features(video: str | os.PathLike[str], mask_path: str | os.PathLike[str] | None,
+                 out_dir: Path) -> list[Path]:
+    import cv2
+    gray = _first_frame(video)
+    mask = None
+    if mask_path is not None:
+        mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+        if mask is None:
+            raise ValueError(f"{mask_path}: could not read the mask image")
+        if mask.shape != gray.shape:
+            raise ValueError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]} but frames are "
+                             f"{gray.shape[1]}x{gray.shape[0]}")
+    written = []
+    shi = cv2.goodFeaturesToTrack(gray, maxCorners=200, qualityLevel=0.01, minDistance=5)
+    harris = cv2.goodFeaturesToTrack(gray, maxCorners=200, qualityLevel=0.01, minDistance=5,
+                                     useHarrisDetector=True, k=0.04)
+    shi = np.zeros((0, 2)) if shi is None else shi.reshape(-1, 2)
+    harris = np.zeros((0, 2)) if harris is None else harris.reshape(-1, 2)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.5))
+    axes[0].imshow(gray, cmap="gray", vmin=0, vmax=255)
+    if mask is not None:
+        ys, xs = np.nonzero(mask > 127)
+        step = max(1, xs.size // 3000)  # a readable dot cloud, not every pixel
+        axes[0].plot(xs[::step], ys[::step], ".", ms=1.5, color="tab:cyan")
+        axes[0].set_title(f"Mask POIs: {xs.size} pixels inside the structure")
+    else:
+        axes[0].set_title("first frame (no mask given)")
+    axes[1].imshow(gray, cmap="gray", vmin=0, vmax=255)
+    axes[1].plot(shi[:, 0], shi[:, 1], "o", mfc="none", mec="tab:orange", ms=6, label=f"Shi-Tomasi ({len(shi)})")
+    axes[1].plot(harris[:, 0], harris[:, 1], "x", color="tab:red", ms=5, label=f"Harris ({len(harris)})")
+    axes[1].set_title("Corner detectors (KLT features)")
+    axes[1].legend(fontsize=8, loc="lower right")
+    for ax in axes:
+        ax.set_xlabel("image x (px)")
+        ax.set_ylabel("image y (px)")
+    fig.tight_layout()
+    written += save(fig, out_dir, "fig6_poi_vs_corners")
+
+    gx = cv2.Sobel(gray.astype(np.float32), cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(gray.astype(np.float32), cv2.CV_32F, 0, 1, ksize=3)
+    mag = np.hypot(gx, gy)
+    fig, ax = plt.subplots(figsize=(6.5, 5.5))
+    im = ax.imshow(mag, cmap="magma")
+    if mask is not None:
+        ax.contour(mask > 127, levels=[0.5], colors="cyan", linewidths=0.8)
+    fig.colorbar(im, ax=ax, label="gradient magnitude (grey levels / px, Sobel 3x3)")
+    ax.set_title("Gradient magnitude (cyan: POI mask outline)")
+    ax.set_xlabel("image x (px)")
+    ax.set_ylabel("image y (px)")
+    fig.tight_layout()
+    written += save(fig, out_dir, "fig7_gradient_magnitude")
+    return written
+
+
+def make_all(*, sensor: str, truth: str, tracks: Sequence[tuple[str, str]], out_dir: str | os.PathLike[str],
+             sim_json: str | None = None, render_json: str | None = None, video: str | None = None,
+             mask: str | None = None, params: dict[str, Any] | None = None) -> list[Path]:
+    """Every figure the inputs allow; returns the written paths."""
+    p = {**DEFAULTS, **(params or {})}
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    sens = read_sensor(sensor)
+    tru = read_truth(truth)
+    fps = 1.0 / float(np.median(np.diff(tru["time_s"])))
+    nominal = 0.0
+    mm_per_px = float("nan")
+    if render_json:
+        rj = read_json(render_json)
+        fps = float(rj.get("fps", fps))
+        nominal = float(rj.get("camera_start_offset_s", 0.0) or 0.0)
+        mm_per_px = float(rj.get("mm_per_px", np.nan))
+    modes = model_modes_hz(read_json(sim_json), sim_json) if sim_json else None
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    runs = []
+    pos = {int(f): i for i, f in enumerate(tru["frame"])}
+    for k, (name, path) in enumerate(tracks):
+        tr = read_track(path)
+        tr["dx_mm"], _ = track_mm(tr, mm_per_px)
+        rows = np.array([pos.get(int(f), -1) for f in tr["frame"]])
+        occluded = np.where(rows >= 0, tru["occluded"][np.maximum(rows, 0)], 0)
+        valid = (tr["valid"] != 0) & np.isfinite(tr["dx_mm"])
+        al = align(sens.time_s, sens.dx_mm, tr["time_s"], tr["dx_mm"], valid=valid & (occluded == 0),
+                   cutoff_hz=p["lowpass_hz"], order=int(p["lowpass_order"]), max_lag_s=p["max_lag_s"],
+                   highpass_hz=p["sync_highpass_hz"], center_s=nominal)
+        meas = tr["dx_mm"] + datum_offset(tr["time_s"], al.ref_mm, tr["dx_mm"], valid & (occluded == 0),
+                                          datum_s=p["datum_s"])
+        both = valid & np.isfinite(al.ref_mm)
+        err = meas[both] - al.ref_mm[both]
+        runs.append({"name": name, "t": tr["time_s"], "meas": meas, "ref": al.ref_mm, "valid": valid,
+                     "occluded": occluded, "color": colors[(k + 1) % len(colors)],
+                     "rmse_mm": float(np.sqrt(np.mean(err ** 2)))})
+    written: list[Path] = []
+    if runs:
+        written += fig_time_histories(runs, tru, out)
+        written += fig_psd(runs, fps, modes, out)
+        written += fig_occlusion(runs, out)
+    else:  # no tracks: still show the reference and truth
+        filt = lowpass(sens.dx_mm, sens.rate_hz, cutoff_hz=p["lowpass_hz"], order=int(p["lowpass_order"]))
+        fig, ax = plt.subplots(figsize=(10, 3))
+        ax.plot(sens.time_s, filt, **REF_STYLE)
+        ax.plot(tru["time_s"] + nominal, tru["dx_mm"], lw=0.8, label="truth (image plane)")
+        ax.set_xlabel("sensor time (s)")
+        ax.set_ylabel("displacement x (mm)")
+        ax.legend(fontsize=8)
+        written += save(fig, out, "fig8_time_histories")
+    if video:
+        written += fig_features(video, mask, out)
+    return written

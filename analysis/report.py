@@ -1,0 +1,83 @@
+"""Summary table over scenarios x methods (CSV + Markdown)."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Sequence
+from typing import Any
+
+from refflow.io import atomic_path
+
+from .readers import read_json
+
+SUMMARY_COLUMNS = (
+    "scenario", "method", "rmse_mm", "rmse_px", "rmse_pct_of_max_ref", "max_disp_meas_mm",
+    "max_disp_ref_mm", "max_disp_ref_1khz_mm", "max_disp_error_pct", "max_error_mm", "bias_mm", "drift_mm_per_s",
+    "lowfreq_power_ratio", "mode1_amplitude_ratio", "mode1_meas_peak_hz", "mode3_expected_hz",
+    "mode3_meas_peak_hz", "sync_lag_s", "sync_lag_error_ms", "valid_frac", "rmse_vs_truth_mm", "rmse_unoccluded_mm",
+    "occlusion_rmse_mm", "post_occlusion_offset_mm", "post_occlusion_rmse_mm", "recovery_time_s",
+    "occluded_flagged_invalid_frac",
+)
+
+
+def load_metrics(paths: Sequence[str | os.PathLike[str]]) -> list[dict[str, Any]]:
+    """Read metrics JSONs; each must name its ``scenario`` and ``method``."""
+    rows = []
+    for path in paths:
+        data = read_json(path)
+        for key in ("scenario", "method"):
+            if key not in data:
+                raise ValueError(f"{path}: missing key {key!r} (write it with `python -m analysis evaluate`)")
+        data["_path"] = str(path)
+        rows.append(data)
+    rows.sort(key=lambda r: (str(r["scenario"]), str(r["method"])))
+    return rows
+
+
+def _fmt(value: Any, digits: int = 4) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return str(int(value))
+    if isinstance(value, float):
+        return "" if not math.isfinite(value) else f"{value:.{digits}g}"
+    return str(value)
+
+
+def write_summary_csv(rows: list[dict[str, Any]], out: str | os.PathLike[str]) -> None:
+    with atomic_path(out) as tmp, tmp.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(SUMMARY_COLUMNS)
+        for row in rows:
+            writer.writerow([_fmt(row.get(c), 6) for c in SUMMARY_COLUMNS])
+
+
+def summary_markdown(rows: list[dict[str, Any]]) -> str:
+    """Table-1 style Markdown: one block per scenario, the reference sensor last."""
+    lines = ["# Displacement accuracy (simulated)", "",
+             "Error = measured - reference (laser sensor, 30 Hz zero-phase Butterworth, synchronised).", ""]
+    scenarios: dict[str, list[dict[str, Any]]] = {}
+    for row in rows:
+        scenarios.setdefault(str(row["scenario"]), []).append(row)
+    for scenario, group in scenarios.items():
+        lines += [f"## {scenario}", "",
+                  "| Method | Maximum displacement (mm) | Max. displacement error (%) | RMSE (mm) | RMSE (px) "
+                  "| RMSE / max. reference (%) | Drift (mm/s) | Post-occlusion offset (mm) | Recovery time (s) |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for row in group:
+            lines.append("| " + " | ".join([
+                str(row["method"]), _fmt(row.get("max_disp_meas_mm")), _fmt(row.get("max_disp_error_pct"), 3),
+                _fmt(row.get("rmse_mm")), _fmt(row.get("rmse_px"), 3), _fmt(row.get("rmse_pct_of_max_ref"), 3),
+                _fmt(row.get("drift_mm_per_s"), 3), _fmt(row.get("post_occlusion_offset_mm"), 3) or "-",
+                _fmt(row.get("recovery_time_s"), 3) or "-"]) + " |")
+        ref = group[0].get("max_disp_ref_mm")
+        lines.append(f"| Reference displacement sensor | {_fmt(ref)} | - | - | - | - | - | - | - |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_text(path: str | os.PathLike[str], text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
