@@ -1,0 +1,151 @@
+"""Camera calibration (checkerboard), ROI-consistent undistortion and image scale.
+
+References
+----------
+Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11), 2000.
+OpenCV ``calibrateCamera`` / ``initUndistortRectifyMap``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from flow.io import FrameSource, InputError, Roi
+
+
+def board_points(cols: int, rows: int, square_mm: float) -> np.ndarray:
+    """Inner-corner coordinates of a planar board, ``(cols*rows, 3)`` float32 in mm."""
+    grid = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2).astype(np.float32)
+    return np.hstack([grid * np.float32(square_mm), np.zeros((len(grid), 1), np.float32)])
+
+
+def parse_board(text: str) -> tuple[int, int]:
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--board {text!r} is not COLSxROWS of inner corners, e.g. 9x6") from None
+    if cols < 2 or rows < 2:
+        raise InputError(f"--board {text!r} needs at least 2x2 inner corners")
+    return cols, rows
+
+
+def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
+              max_views: int = 60, fix_k3: bool = True) -> dict[str, Any]:
+    """Calibrate intrinsics and distortion from checkerboard views.
+
+    Parameters
+    ----------
+    source : path
+        Folder of images or a video showing the board (every frame is tried,
+        at most ``max_views`` evenly spread detections are used).
+    board : (cols, rows)
+        Inner corners per row and column.
+    square_mm : float
+        Square side in mm (only the extrinsics depend on it).
+    fix_k3 : bool
+        Keep ``k3 = 0`` (default): with views that do not reach the image corners,
+        k2 and k3 trade off against each other and k3 mostly fits noise.
+
+    Returns
+    -------
+    dict
+        ``camera_matrix`` (3x3), ``dist_coeffs`` (k1, k2, p1, p2, k3),
+        ``rms_px`` reprojection error, ``image_size`` [w, h], ``views_used``.
+    """
+    if square_mm <= 0:
+        raise InputError(f"--square-mm {square_mm} is not positive: pass the square side in mm")
+    frames = FrameSource(source, fps=1.0)
+    obj = board_points(*board, square_mm)
+    image_points = []
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
+    for _, _, grey in frames:
+        found, corners = cv2.findChessboardCorners(
+            grey, board, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if found:
+            corners = cv2.cornerSubPix(grey, corners, (5, 5), (-1, -1), criteria)
+            image_points.append(corners)
+    if len(image_points) < 3:
+        raise InputError(
+            f"the {board[0]}x{board[1]} board was found in {len(image_points)} of "
+            f"{frames.frames_read} images; need at least 3: check --board (inner corners) and the images")
+    if len(image_points) > max_views:
+        keep = np.linspace(0, len(image_points) - 1, max_views).round().astype(int)
+        image_points = [image_points[i] for i in keep]
+    size = (frames.width, frames.height)
+    rms, camera_matrix, dist, _, _ = cv2.calibrateCamera(
+        [obj] * len(image_points), image_points, size, None, None,
+        flags=cv2.CALIB_FIX_K3 if fix_k3 else 0)
+    return {
+        "camera_matrix": camera_matrix.tolist(),
+        "dist_coeffs": dist.ravel()[:5].tolist(),
+        "rms_px": float(rms),
+        "image_size": list(size),
+        "board": list(board),
+        "square_mm": float(square_mm),
+        "views_used": len(image_points),
+        "fix_k3": bool(fix_k3),
+    }
+
+
+def load_calibration(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"calibration file {str(path)!r} does not exist: run `refflow calibrate` first")
+    try:
+        data = json.loads(path.read_text())
+        np.asarray(data["camera_matrix"], float).reshape(3, 3)
+        np.asarray(data["dist_coeffs"], float)
+    except (ValueError, KeyError, TypeError) as err:
+        raise InputError(f"calibration file {str(path)!r} is not a refflow calibration JSON ({err})") from None
+    return data
+
+
+class Undistorter:
+    """Undistort ROI crops with the full-sensor camera model.
+
+    The remap tables are computed for the ROI window only: the principal point
+    is shifted by the ROI offset, so pixel (u, v) of the output is the ideal
+    pinhole pixel (u + roi.x, v + roi.y) of the full sensor.
+    """
+
+    def __init__(self, calibration: dict[str, Any], roi: Roi, frame_size: tuple[int, int]) -> None:
+        camera = np.asarray(calibration["camera_matrix"], np.float64).reshape(3, 3)
+        dist = np.asarray(calibration["dist_coeffs"], np.float64).ravel()
+        cal_size = tuple(calibration.get("image_size", frame_size))
+        if tuple(cal_size) != tuple(frame_size):
+            raise InputError(
+                f"calibration is for {cal_size[0]}x{cal_size[1]} images but frames are "
+                f"{frame_size[0]}x{frame_size[1]}: calibrate at the video resolution")
+        shifted = camera.copy()
+        shifted[0, 2] -= roi.x
+        shifted[1, 2] -= roi.y
+        # Same camera matrix for input and output; the input lives in full-sensor pixels,
+        # so compute maps in full-sensor coordinates, then express them in ROI pixels.
+        map_x, map_y = cv2.initUndistortRectifyMap(camera, dist, None, shifted,
+                                                   (roi.width, roi.height), cv2.CV_32FC1)
+        self.map_x = map_x - np.float32(roi.x)
+        self.map_y = map_y - np.float32(roi.y)
+
+    def __call__(self, grey_roi: np.ndarray) -> np.ndarray:
+        return cv2.remap(grey_roi, self.map_x, self.map_y, cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+
+
+def scale_from_known_length(length_mm: float, between: str) -> float:
+    """mm per pixel from a known length between two image points ``X1,Y1,X2,Y2``."""
+    if length_mm <= 0:
+        raise InputError(f"--known-length {length_mm} is not positive: pass the length in mm")
+    try:
+        x1, y1, x2, y2 = (float(v) for v in between.split(","))
+    except ValueError:
+        raise InputError(f"--between {between!r} is not X1,Y1,X2,Y2 (pixel coordinates)") from None
+    distance_px = math.hypot(x2 - x1, y2 - y1)
+    if distance_px <= 0:
+        raise InputError(f"--between {between!r}: the two points coincide; pick two distinct points")
+    return length_mm / distance_px

@@ -1,0 +1,151 @@
+"""Sparse KLT baselines (paper section 2.2 and 4).
+
+``klt`` is the paper's baseline: Harris (or Shi-Tomasi) corners detected in the
+ROI of the reference frame, pyramidal Lucas-Kanade from frame to frame, the
+displacement of a feature being the sum of its frame-to-frame motions (so errors
+accumulate: drift). ``klt-ref`` tracks the same features against the fixed
+reference frame instead.
+
+References
+----------
+B. D. Lucas, T. Kanade, "An iterative image registration technique with an
+application to stereo vision", IJCAI 1981.
+J. Shi, C. Tomasi, "Good features to track", CVPR 1994.
+J.-Y. Bouguet, "Pyramidal implementation of the Lucas Kanade feature tracker", 2000.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from flow.registry import register
+
+
+class SparseMethod:
+    """Base class of sparse methods that follow their own features.
+
+    The driver calls :meth:`start` once with the reference frame, then
+    :meth:`step` with every frame in order (frame 0 included). ``step``
+    returns the displacement of every feature relative to the reference,
+    ``(N, 2)`` float32, NaN where a feature is lost.
+    """
+
+    kind = "sparse"
+    name: str = ""
+    summary: str = ""
+
+    def __init__(self, **params: Any) -> None:
+        self._params = dict(params)
+
+    def params(self) -> dict[str, Any]:
+        return dict(self._params)
+
+    def detect(self, reference: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+        """Feature positions ``(N, 2)`` float32 in ``reference`` (Harris or Shi-Tomasi)."""
+        p = self._params
+        region = None
+        if p["use_mask"] and mask is not None:
+            region = mask.astype(np.uint8) * 255
+        corners = cv2.goodFeaturesToTrack(
+            reference, maxCorners=p["max_corners"], qualityLevel=p["quality_level"],
+            minDistance=p["min_distance"], mask=region, blockSize=p["block_size"],
+            useHarrisDetector=p["detector"] == "harris", k=0.04)
+        if corners is None:
+            return np.zeros((0, 2), np.float32)
+        return corners.reshape(-1, 2).astype(np.float32)
+
+    def start(self, reference: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+        self.reference = reference
+        self.points0 = self.detect(reference, mask)
+        self.previous = reference
+        self.points = self.points0.copy()
+        self.alive = np.ones(len(self.points0), bool)
+        return self.points0
+
+    def _lk(self, image0: np.ndarray, image1: np.ndarray, points: np.ndarray,
+            guess: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        p = self._params
+        win = (p["window"], p["window"])
+        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+        if guess is None:
+            new, status, _ = cv2.calcOpticalFlowPyrLK(image0, image1, points.reshape(-1, 1, 2), None,
+                                                      winSize=win, maxLevel=p["levels"], criteria=criteria)
+        else:
+            new, status, _ = cv2.calcOpticalFlowPyrLK(
+                image0, image1, points.reshape(-1, 1, 2), guess.reshape(-1, 1, 2).copy(),
+                winSize=win, maxLevel=p["levels"], criteria=criteria,
+                flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        return new.reshape(-1, 2), status.ravel().astype(bool)
+
+    def step(self, current: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+
+_KLT_DEFAULTS = dict(detector="harris", max_corners=200, quality_level=0.01, min_distance=5,
+                     block_size=5, window=21, levels=3, use_mask=False)
+
+
+def _check_detector(detector: str) -> None:
+    if detector not in ("harris", "shi-tomasi"):
+        raise ValueError(f"KLT detector {detector!r} unknown; use 'harris' or 'shi-tomasi'")
+
+
+@register("klt")
+class KLT(SparseMethod):
+    """Paper baseline: corners in the ROI, pyramidal LK frame to frame, integrated motion.
+
+    Parameters
+    ----------
+    detector : {"harris", "shi-tomasi"}
+    max_corners, quality_level, min_distance, block_size : corner detection settings.
+    window, levels : LK window side and pyramid levels.
+    use_mask : bool
+        Restrict corners to the POI mask (default False: the paper's KLT sees the whole ROI).
+    """
+
+    summary = "paper baseline: Harris corners in ROI, pyramidal LK frame to frame, summed motion, plain average"
+
+    def __init__(self, **params: Any) -> None:
+        merged = {**_KLT_DEFAULTS, **params}
+        _check_detector(merged["detector"])
+        super().__init__(**merged)
+
+    def step(self, current: np.ndarray) -> np.ndarray:
+        if current is not self.previous and self.alive.any():
+            idx = np.flatnonzero(self.alive)
+            new, ok = self._lk(self.previous, current, self.points[idx])
+            self.points[idx] = new
+            # A lost feature stays lost: the baseline cannot re-find it without a reference.
+            self.alive[idx[~ok]] = False
+        self.previous = current
+        displacement = self.points - self.points0
+        displacement[~self.alive] = np.nan
+        return displacement.astype(np.float32)
+
+
+@register("klt-ref")
+class KLTReference(SparseMethod):
+    """KLT features tracked against the fixed reference frame (no integration)."""
+
+    summary = "KLT features (Harris) tracked against the fixed reference frame with pyramidal LK; plain average"
+
+    def __init__(self, **params: Any) -> None:
+        merged = {**_KLT_DEFAULTS, **params}
+        _check_detector(merged["detector"])
+        super().__init__(**merged)
+
+    def step(self, current: np.ndarray) -> np.ndarray:
+        if len(self.points0) == 0:
+            return np.zeros((0, 2), np.float32)
+        # Start from the last good estimate; where a feature was lost, from its reference spot,
+        # so tracking resumes when the view comes back.
+        guess = np.where(self.alive[:, None], self.points, self.points0)
+        new, ok = self._lk(self.reference, current, self.points0, guess)
+        self.alive = ok
+        self.points = np.where(ok[:, None], new, self.points0)
+        displacement = new - self.points0
+        displacement[~ok] = np.nan
+        return displacement.astype(np.float32)

@@ -1,0 +1,69 @@
+"""Points of interest (paper section 3.1): a binary mask selects the pixels to track."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from flow.io import InputError, Roi
+
+
+def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi) -> np.ndarray:
+    """Read a mask PNG (full-frame or ROI size) and return it as an ROI-sized bool array."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"mask {str(path)!r} does not exist: check the path or use --rect/--polygon")
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise InputError(f"mask {str(path)!r} cannot be read: save it as an 8-bit PNG")
+    height, width = image.shape
+    if (width, height) == tuple(frame_size):
+        image = image[roi.y:roi.y + roi.height, roi.x:roi.x + roi.width]
+    elif (width, height) != (roi.width, roi.height):
+        raise InputError(
+            f"mask is {width}x{height} but frames are {frame_size[0]}x{frame_size[1]} "
+            f"(ROI {roi.width}x{roi.height}): pass --roi or a full-size mask")
+    return image > 127
+
+
+def rect_mask(text: str, *, roi: Roi) -> np.ndarray:
+    """Mask of the rectangle ``X,Y,W,H`` given in full-frame pixels."""
+    try:
+        x, y, w, h = (int(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"--rect {text!r} is not X,Y,W,H (four integers)") from None
+    mask = np.zeros((roi.height, roi.width), bool)
+    mask[max(y - roi.y, 0):max(y - roi.y + h, 0), max(x - roi.x, 0):max(x - roi.x + w, 0)] = True
+    return mask
+
+
+def polygon_mask(text: str, *, roi: Roi) -> np.ndarray:
+    """Mask of the polygon ``X1,Y1,X2,Y2,...`` given in full-frame pixels."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise InputError(f"--polygon {text!r} is not X1,Y1,X2,Y2,... (numbers)") from None
+    if len(values) < 6 or len(values) % 2:
+        raise InputError(f"--polygon {text!r} needs at least three X,Y vertices")
+    vertices = np.asarray(values).reshape(-1, 2) - [roi.x, roi.y]
+    mask = np.zeros((roi.height, roi.width), np.uint8)
+    cv2.fillPoly(mask, [np.round(vertices).astype(np.int32)], 255)
+    return mask > 0
+
+
+def poi_coordinates(mask: np.ndarray, *, grid_step: int = 1) -> np.ndarray:
+    """``(P, 2)`` int32 ``(x, y)`` ROI coordinates of the mask pixels, optionally on a grid.
+
+    Raises ``InputError`` if no POI remains.
+    """
+    if grid_step < 1:
+        raise InputError(f"--grid-step {grid_step} must be >= 1")
+    sub = np.zeros_like(mask)
+    sub[::grid_step, ::grid_step] = mask[::grid_step, ::grid_step]
+    ys, xs = np.nonzero(sub)
+    if len(xs) == 0:
+        raise InputError("the mask selects no pixel inside the ROI: draw the structure in white (255) "
+                         "on black, or check --roi/--rect/--grid-step")
+    return np.stack([xs, ys], axis=1).astype(np.int32)

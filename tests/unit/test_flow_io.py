@@ -1,0 +1,54 @@
+"""Frame input, ROI and POI masks."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from flow.io import FrameSource, InputError, Roi
+from flow.poi import load_mask, poi_coordinates, polygon_mask, rect_mask
+
+
+def test_roi_parse_and_bounds() -> None:
+    roi = Roi.parse("10,20,30,40")
+    assert roi == Roi(10, 20, 30, 40)
+    roi.check(40, 60)
+    with pytest.raises(InputError, match="outside the 39x60 frame"):
+        roi.check(39, 60)
+    with pytest.raises(InputError, match="X,Y,W,H"):
+        Roi.parse("1,2,3")
+
+
+def test_image_folder_streams_grey_roi_with_fps_timestamps(tmp_path) -> None:
+    for i in range(3):
+        image = np.full((30, 40, 3), 10 * i, np.uint8)
+        image[5, 7] = (255, 255, 255)
+        cv2.imwrite(str(tmp_path / f"{i:02d}.png"), image)
+    source = FrameSource(tmp_path, roi=Roi(7, 5, 10, 8), fps=25.0)
+    frames = list(source)
+    assert [f[0] for f in frames] == [0, 1, 2]
+    assert [f[1] for f in frames] == pytest.approx([0, 0.04, 0.08])
+    assert frames[1][2].shape == (8, 10) and frames[1][2].dtype == np.uint8
+    assert frames[1][2][0, 0] == 255 and frames[1][2][1, 1] == 10
+    assert source.frames_read == 3 and not source.truncated
+
+
+def test_masks_full_size_roi_size_rect_polygon_and_grid(tmp_path) -> None:
+    roi = Roi(10, 10, 20, 10)
+    full = np.zeros((40, 50), np.uint8)
+    full[12:15, 11:16] = 255
+    cv2.imwrite(str(tmp_path / "full.png"), full)
+    cv2.imwrite(str(tmp_path / "roi.png"), full[10:20, 10:30])
+    cv2.imwrite(str(tmp_path / "bad.png"), full[:7, :9])
+    a = load_mask(tmp_path / "full.png", frame_size=(50, 40), roi=roi)
+    b = load_mask(tmp_path / "roi.png", frame_size=(50, 40), roi=roi)
+    assert a.shape == (10, 20) and (a == b).all() and a.sum() == 15
+    with pytest.raises(InputError, match="mask is 9x7 but frames are 50x40"):
+        load_mask(tmp_path / "bad.png", frame_size=(50, 40), roi=roi)
+    assert (rect_mask("11,12,5,3", roi=roi) == a).all()
+    assert polygon_mask("10,10,29,10,29,19", roi=roi).sum() > 50
+    assert len(poi_coordinates(a)) == 15
+    assert len(poi_coordinates(a, grid_step=2)) == 4  # rows 2, 4 x cols 2, 4 of the ROI
+    with pytest.raises(InputError, match="selects no pixel"):
+        poi_coordinates(np.zeros((4, 4), bool))
