@@ -1,0 +1,190 @@
+"""Per-frame time and peak memory: refflow ``deepflow`` vs OpenCV's DeepFlow.
+
+Run ``python benchmarks/bench_deepflow.py`` (add ``--frames N``). Each method
+runs in its own subprocess on the same synthetic 800x400 and 512x256 pairs
+(textured scene, smooth deformation of a few pixels, as in a structural ROI);
+the warm-up call (numba compilation or cache load) is timed separately and
+excluded from the per-frame time. Peak memory is the subprocess's
+``ru_maxrss``; the resident size after imports is printed as the baseline.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SIZES = ((800, 400), (512, 256))
+
+
+def _pair(width: int, height: int):
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    img = np.zeros((height, width), np.float32)
+    for sigma, amp in ((1.0, 0.5), (3.0, 1.0), (8.0, 1.0)):
+        img += (
+            amp
+            * sigma
+            * cv2.GaussianBlur(
+                rng.standard_normal((height, width)).astype(np.float32), (0, 0), sigma
+            )
+        )
+    img = np.clip(128 + 40 * (img - img.mean()) / img.std(), 0, 255).astype(np.float32)
+    gx, gy = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
+    fx = 3.0 * np.sin(2 * np.pi * gy / height) + 1.5
+    fy = 2.0 * np.cos(2 * np.pi * gx / width)
+    current = cv2.remap(img, gx - fx, gy - fy, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    return img.astype(np.uint8), np.clip(current, 0, 255).astype(np.uint8)
+
+
+def _maxrss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _worker(method: str, width: int, height: int, frames: int, preset: str = "default") -> dict:
+    sys.path.insert(0, str(ROOT))
+    import cv2
+
+    reference, current = _pair(width, height)
+    if method == "opencv":
+        engine = cv2.optflow.createOptFlow_DeepFlow()
+
+        def calc():
+            return engine.calc(reference, current, None)
+    else:
+        import flow.methods.deepflow as deepflow_module
+
+        engine = deepflow_module.DeepFlow(preset=preset)
+
+        def calc():
+            return engine.calc(reference, current)
+
+    baseline = _maxrss_mb()
+    t0 = time.perf_counter()
+    calc()
+    warmup = time.perf_counter() - t0
+    times = []
+    for _ in range(frames):
+        t0 = time.perf_counter()
+        calc()
+        times.append(time.perf_counter() - t0)
+    result = {
+        "warmup_s": warmup,
+        "frame_s": min(times),
+        "frame_mean_s": sum(times) / len(times),
+        "baseline_mb": baseline,
+        "peak_mb": _maxrss_mb(),
+    }
+    if method == "ours":
+        # Where the time goes: matching vs variational, one more frame.
+        from flow.deepmatching import deep_matching, densify
+        from flow.variational import refine
+
+        t0 = time.perf_counter()
+        grid = deep_matching(reference, current, engine._match)
+        mflow, mweight = densify(grid, reference.shape, nearest=True)
+        t1 = time.perf_counter()
+        refine(reference, current, engine._var, match_flow=mflow, match_weight=mweight)
+        t2 = time.perf_counter()
+        result["matching_s"] = t1 - t0
+        result["variational_s"] = t2 - t1
+    return result
+
+
+def _interleaved_times(width: int, height: int, frames: int, preset: str) -> dict:
+    """Per-frame times of both methods measured alternately in this process.
+
+    Alternating A, B, A, B and keeping each method's fastest frame makes the
+    ratio robust to other jobs on a shared machine.
+    """
+    sys.path.insert(0, str(ROOT))
+    import cv2
+
+    import flow.methods.deepflow as deepflow_module
+
+    reference, current = _pair(width, height)
+    opencv = cv2.optflow.createOptFlow_DeepFlow()
+    ours = deepflow_module.DeepFlow(preset=preset)
+    t0 = time.perf_counter()
+    ours.calc(reference, current)
+    warmup = time.perf_counter() - t0
+    opencv.calc(reference, current, None)
+    best = {"opencv": float("inf"), "ours": float("inf")}
+    for _ in range(frames):
+        t0 = time.perf_counter()
+        opencv.calc(reference, current, None)
+        best["opencv"] = min(best["opencv"], time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        ours.calc(reference, current)
+        best["ours"] = min(best["ours"], time.perf_counter() - t0)
+    best["warmup_s"] = warmup
+    return best
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=3)
+    parser.add_argument(
+        "--preset", default="default", help="preset of refflow deepflow (default, fast)"
+    )
+    parser.add_argument("--worker", nargs=3, metavar=("METHOD", "W", "H"))
+    args = parser.parse_args()
+    if args.worker:
+        method, width, height = args.worker[0], int(args.worker[1]), int(args.worker[2])
+        print(json.dumps(_worker(method, width, height, args.frames, args.preset)))
+        return
+    # Memory first, in fresh subprocesses: a child forked from a big parent
+    # inherits the parent's RSS high-water mark in ru_maxrss.
+    results = {}
+    for width, height in SIZES:
+        res = results[(width, height)] = {}
+        for method in ("opencv", "ours"):
+            out = subprocess.run(
+                [
+                    sys.executable,
+                    __file__,
+                    "--frames",
+                    str(args.frames),
+                    "--preset",
+                    args.preset,
+                    "--worker",
+                    method,
+                    str(width),
+                    str(height),
+                ],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            res[method] = json.loads(out.stdout.strip().splitlines()[-1])
+    for width, height in SIZES:
+        ours, cv = results[(width, height)]["ours"], results[(width, height)]["opencv"]
+        both = _interleaved_times(width, height, args.frames, args.preset)
+        print(
+            f"{width}x{height}: OpenCV DeepFlow {both['opencv']:.3f} s/frame, "
+            f"peak RSS {cv['peak_mb']:.0f} MB (after imports {cv['baseline_mb']:.0f} MB)"
+        )
+        print(
+            f"{width}x{height}: refflow deepflow [{args.preset}] {both['ours']:.3f} s/frame "
+            f"(one frame split: matching {ours['matching_s']:.3f} s, "
+            f"variational {ours['variational_s']:.3f} s), "
+            f"warm-up {both['warmup_s']:.2f} s (first call in a fresh process "
+            f"{ours['warmup_s']:.2f} s), peak RSS {ours['peak_mb']:.0f} MB "
+            f"(after imports {ours['baseline_mb']:.0f} MB)"
+        )
+        print(
+            f"{width}x{height}: time ratio ours/OpenCV = {both['ours'] / both['opencv']:.2f} "
+            f"(interleaved, best of {args.frames}); peak memory ratio = "
+            f"{ours['peak_mb'] / cv['peak_mb']:.2f}"
+        )
+
+
+if __name__ == "__main__":
+    main()
