@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
 import sys
 import time
@@ -108,6 +109,20 @@ def cmd_methods(args: argparse.Namespace) -> int:
     return 0
 
 
+def _scale_from_file(path: str) -> float:
+    """``mm_per_px`` from a JSON file (a scale file, or any sidecar that records one)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise InputError(f"scale file {path} does not exist") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise InputError(f"scale file {path} is not readable JSON: {err}") from None
+    value = data.get("mm_per_px") if isinstance(data, dict) else None
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
+        raise InputError(f"scale file {path} needs a positive number under 'mm_per_px', got {value!r}")
+    return float(value)
+
+
 def cmd_track(args: argparse.Namespace) -> int:
     from flow import poi, track
     from flow.calibration import scale_from_known_length
@@ -124,9 +139,13 @@ def cmd_track(args: argparse.Namespace) -> int:
         raise InputError(f"unknown method {name!r}; available: {', '.join(registry.available())} "
                          "(see `refflow methods`)")
     _positive("--mm-per-px", args.mm_per_px)
-    if args.mm_per_px is not None and args.known_length is not None:
-        raise InputError("pass either --mm-per-px or --known-length/--between, not both")
-    if args.known_length is not None or args.between is not None:
+    given = [args.mm_per_px is not None, args.known_length is not None, args.scale_file is not None]
+    if sum(given) > 1:
+        raise InputError("pass one scale: --mm-per-px, --known-length/--between or --scale-file")
+    if args.scale_file is not None:
+        mm_per_px = _scale_from_file(args.scale_file)
+        scale_source = f"mm_per_px from {args.scale_file}"
+    elif args.known_length is not None or args.between is not None:
         if args.known_length is None or args.between is None:
             raise InputError("--known-length needs --between X1,Y1,X2,Y2 (and vice versa)")
         mm_per_px = scale_from_known_length(args.known_length, args.between)
@@ -275,6 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mm-per-px", type=float, help="image scale at the structure, mm per pixel")
     p.add_argument("--known-length", type=float, help="known length in mm between the --between points")
     p.add_argument("--between", help="X1,Y1,X2,Y2 image points spanning --known-length")
+    p.add_argument("--scale-file", help="JSON file holding a positive 'mm_per_px'")
     p.add_argument("--out", required=True, help="output CSV; a JSON sidecar is written beside it")
     p.add_argument("--jobs", type=int, default=1, help="frames measured in parallel (dense methods)")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")

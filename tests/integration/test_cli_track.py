@@ -172,6 +172,9 @@ BAD = {
     "zero scale": (["{video}", "--mask", "{mask}", "--mm-per-px", "0"], "not positive"),
     "unknown method": (["{video}", "--mask", "{mask}", "--method", "magic"], "unknown method 'magic'"),
     "no mask": (["{video}"], "--mask"),
+    "missing scale file": (["{video}", "--mask", "{mask}", "--scale-file", "{folder}/s.json"], "does not exist"),
+    "scale file without scale": (["{video}", "--mask", "{mask}", "--scale-file", "{mask}"], "not readable JSON"),
+    "two scales": (["{video}", "--mask", "{mask}", "--mm-per-px", "1", "--scale-file", "{mask}"], "pass one scale"),
     "missing calibration": (["{video}", "--mask", "{mask}", "--calibration", "{folder}/c.json"], "refflow calibrate"),
 }
 
@@ -206,3 +209,16 @@ def test_methods_lists_every_method(capsys) -> None:
     out = capsys.readouterr().out
     for name in ("deepflow-opencv", "dis", "farneback", "klt", "klt-ref"):
         assert name in out
+
+
+def test_scale_file_gives_the_mm_columns(clip, tmp_path) -> None:
+    scale = tmp_path / "scale.json"
+    scale.write_text('{"mm_per_px": 0.25, "other": 1}')
+    out = tmp_path / "out.csv"
+    rc = main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--scale-file", str(scale),
+               "--max-frames", "3", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    rows = list(csv.DictReader(out.open()))
+    for row in rows:
+        assert float(row["dx_mm"]) == pytest.approx(0.25 * float(row["dx_px"]), abs=1e-6)
+    assert json.loads(out.with_suffix(".json").read_text())["scale"]["mm_per_px"] == 0.25
