@@ -1,4 +1,4 @@
-"""Command line: ``python -m analysis {evaluate,summary,table1,figures,modal} ...``.
+"""Command line: ``python -m analysis {evaluate,summary,table1,figures,modal,gates} ...``.
 
 Bad input (missing file or column, NaN in data) prints one line naming the
 file and column and exits with status 2.
@@ -145,6 +145,21 @@ def cmd_modal(args: argparse.Namespace) -> None:
               f"zeta={out[f'mode{i}_damping_ratio']:.4g}, MAC={out[f'mode{i}_mac']:.4f}")
 
 
+def cmd_gates(args: argparse.Namespace) -> int:
+    import yaml
+
+    from .gates import check, format_table, load_metrics
+
+    spec = yaml.safe_load(Path(args.gates).read_text()) or {}
+    if not isinstance(spec.get("gates"), list) or not spec["gates"]:
+        raise ValueError(f"{args.gates}: needs a non-empty list under 'gates'")
+    rows = check(spec["gates"], load_metrics(args.metrics))
+    print(format_table(rows))
+    if args.out:
+        write_json(args.out, {"gates": rows, "passed": all(r["passed"] for r in rows)})
+    return 0 if all(r["passed"] for r in rows) else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m analysis", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -191,17 +206,23 @@ def build_parser() -> argparse.ArgumentParser:
     mo.add_argument("--beam-length-mm", type=float)
     mo.add_argument("--n-modes", type=int, default=2)
     mo.set_defaults(func=cmd_modal)
+
+    ga = sub.add_parser("gates", help="check metrics against config/gates.yaml (exit 1 on a failed gate)")
+    ga.add_argument("metrics", nargs="+", help="metrics JSON files from evaluate")
+    ga.add_argument("--gates", required=True, help="gates YAML")
+    ga.add_argument("--out", help="JSON with every gate's result")
+    ga.set_defaults(func=cmd_gates)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        args.func(args)
+        status = args.func(args)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    return 0
+    return int(status or 0)
 
 
 if __name__ == "__main__":
