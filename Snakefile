@@ -1,0 +1,25 @@
+# refflow workbench: simulate -> render -> calibrate -> track -> evaluate -> report.
+# Thin by design: configuration, schema validation, rule files, rule all.
+from snakemake.utils import min_version, validate
+
+min_version("8.0")
+
+
+configfile: "config/config.yaml"
+
+
+validate(config, "workflow/schemas/config.schema.yaml")
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/simulate.smk"
+include: "workflow/rules/render.smk"
+include: "workflow/rules/track.smk"
+include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/report.smk"
+
+
+rule all:
+    input:
+        all_outputs(),
+    default_target: True

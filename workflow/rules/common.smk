@@ -1,0 +1,56 @@
+# Helpers shared by the rule files: scenario configs, targets, paths.
+import json
+
+from refflow.config import deep_merge
+
+RESULTS = config.get("results_dir", "results")
+SCENARIOS = list(config["scenarios"])
+METHODS = list(config["methods"])
+
+
+wildcard_constraints:
+    scenario="|".join(SCENARIOS),
+    method="|".join(METHODS),
+
+
+def scenario_config(scenario):
+    return deep_merge(config["defaults"], config["scenarios"][scenario])
+
+
+def scenario_config_json(wildcards):
+    # A string param: Snakemake re-runs the scenario's chain only when it changes.
+    return json.dumps(scenario_config(wildcards.scenario), sort_keys=True)
+
+
+def scenario_methods(scenario):
+    return scenario_config(scenario).get("methods", METHODS)
+
+
+def track_args(wildcards):
+    """`refflow track` options from the scenario's `track` section."""
+    cfg = scenario_config(wildcards.scenario).get("track", {})
+    params = cfg.get("methods", {}).get(wildcards.method, {})
+    args = [f"--param {key}={value}" for key, value in sorted(params.items())]
+    for key in ("filter", "threshold_ratio", "mcr_threshold", "grid_step", "reference_frame"):
+        if key in cfg:
+            args.append(f"--{key.replace('_', '-')} {cfg[key]}")
+    return " ".join(args)
+
+
+def metrics_files():
+    return [
+        f"{RESULTS}/{scenario}/metrics/{method}.json"
+        for scenario in SCENARIOS
+        for method in scenario_methods(scenario)
+    ]
+
+
+def all_outputs():
+    outputs = [f"{RESULTS}/summary.csv", f"{RESULTS}/summary.md", f"{RESULTS}/table1.md"]
+    for scenario in SCENARIOS:
+        outputs += [
+            f"{RESULTS}/{scenario}/figures",
+            f"{RESULTS}/{scenario}/sim/modes.json",
+            f"{RESULTS}/{scenario}/metrics/modal.json",
+        ]
+    return outputs

@@ -1,0 +1,40 @@
+# Stage 1: the scenario's merged config, the beam's modes and its simulated motion.
+
+
+rule scenario_config:
+    output:
+        f"{RESULTS}/{{scenario}}/config.yaml",
+    params:
+        merged=scenario_config_json,
+    log:
+        f"{RESULTS}/{{scenario}}/logs/config.log",
+    shell:
+        "python -m refflow.config --json {params.merged:q} --out {output} > {log} 2>&1"
+
+
+rule modes:
+    input:
+        f"{RESULTS}/{{scenario}}/config.yaml",
+    output:
+        f"{RESULTS}/{{scenario}}/sim/modes.json",
+    log:
+        f"{RESULTS}/{{scenario}}/logs/modes.log",
+    shell:
+        "python -m sim modes --config {input} --json --out {output} > {log} 2>&1"
+
+
+rule simulate:
+    input:
+        f"{RESULTS}/{{scenario}}/config.yaml",
+    output:
+        sensor=f"{RESULTS}/{{scenario}}/sim/sensor.csv",
+        shapes=f"{RESULTS}/{{scenario}}/sim/shapes.npz",
+        sidecar=f"{RESULTS}/{{scenario}}/sim/sim.json",
+    params:
+        out_dir=subpath(output.sidecar, parent=True),
+    log:
+        f"{RESULTS}/{{scenario}}/logs/simulate.log",
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/simulate.tsv"
+    shell:
+        "python -m sim simulate --config {input} --out-dir {params.out_dir} > {log} 2>&1"
