@@ -186,7 +186,10 @@ def cmd_track(args: argparse.Namespace) -> int:
         print(f"refflow track: warning: {warning.message}", file=sys.stderr)
     result = track.measure(tracks, filter_enabled=filter_mode != "none",
                            average="median" if filter_mode == "median" else "mean",
-                           threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold)
+                           threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
+                           # KLT mixes background and structure features by design (the paper's
+                           # baseline): their disagreement is no sign of a blocked view
+                           check_coherence=not sparse)
     notes.extend(result.filtered.notes)
 
     roi = source.roi

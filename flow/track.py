@@ -249,15 +249,56 @@ def flag_invalid(residual: np.ndarray, *, k_mad: float = 8.0, ratio: float = 2.5
     return np.isfinite(residual) & (residual <= threshold), threshold
 
 
+def poi_spread(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    """Per frame, the robust spread (px) of the POI displacements: 1.4826 x MAD, x and y combined.
+
+    POIs on one structural member move almost alike; an occluder, a lost view
+    or a failed flow scatters them.
+    """
+    spread = np.full(dx.shape[0], np.nan)
+    if dx.shape[1] == 0:
+        return spread
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mad_x = np.nanmedian(np.abs(dx - np.nanmedian(dx, axis=1, keepdims=True)), axis=1)
+        mad_y = np.nanmedian(np.abs(dy - np.nanmedian(dy, axis=1, keepdims=True)), axis=1)
+    return 1.4826 * np.hypot(mad_x, mad_y)
+
+
+def flag_incoherent(spread: np.ndarray, *, ratio: float = 4.0, floor_px: float = 1.5) -> np.ndarray:
+    """Frames whose POIs disagree far more than usual: ``spread > max(ratio * median, floor_px)``.
+
+    Catches an occluder whose brightness happens to match the structure's
+    (the photometric residual then stays low while the flow is garbage).
+    NaN spread (no POI measured) counts as coherent here; ``all_nan`` handles it.
+    """
+    finite = spread[np.isfinite(spread)]
+    if finite.size == 0:
+        return np.zeros(spread.shape, bool)
+    threshold = max(ratio * float(np.median(finite)), floor_px)
+    return np.isfinite(spread) & (spread > threshold)
+
+
 def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean",
             threshold_ratio: float = 0.5, threshold_px: float | None = None,
             mcr_threshold: float = 0.5, residual_ratio: float = 2.5,
-            residual_k_mad: float = 8.0, residual_floor: float = 3.0) -> Measurement:
-    """Quality flags, eq. (10)-(12) filtering and averaging of a run's tracks."""
+            residual_k_mad: float = 8.0, residual_floor: float = 3.0,
+            spread_ratio: float = 4.0, spread_floor_px: float = 1.5,
+            check_coherence: bool = True) -> Measurement:
+    """Quality flags, eq. (10)-(12) filtering and averaging of a run's tracks.
+
+    A frame is invalid when its photometric residual is far above its baseline
+    (:func:`flag_invalid`), when no POI was measured, or, with
+    ``check_coherence``, when its POIs scatter far more than usual
+    (:func:`flag_incoherent`).
+    """
     valid, threshold = flag_invalid(tracks.residual, k_mad=residual_k_mad, ratio=residual_ratio,
                                     floor=residual_floor)
     all_nan = ~np.isfinite(tracks.dx).any(axis=1)
     valid &= ~all_nan
+    if check_coherence:
+        valid &= ~flag_incoherent(poi_spread(tracks.dx, tracks.dy), ratio=spread_ratio,
+                                  floor_px=spread_floor_px)
     filtered = filter_and_average(tracks.dx, tracks.dy, valid=valid, reference_row=tracks.reference_row,
                                   threshold_ratio=threshold_ratio, threshold_px=threshold_px,
                                   mcr_threshold=mcr_threshold, average=average, enabled=filter_enabled)
@@ -265,16 +306,7 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
     kept = filtered.kept
     finite = np.isfinite(tracks.dx[:, kept])
     poi_kept_frac = finite.sum(axis=1) / max(n_points, 1)
-    with np.errstate(all="ignore"):
-        sub_x = tracks.dx[:, kept]
-        sub_y = tracks.dy[:, kept]
-        spread = np.full(len(valid), np.nan)
-        if kept.any():
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                mad_x = np.nanmedian(np.abs(sub_x - np.nanmedian(sub_x, axis=1, keepdims=True)), axis=1)
-                mad_y = np.nanmedian(np.abs(sub_y - np.nanmedian(sub_y, axis=1, keepdims=True)), axis=1)
-            spread = 1.4826 * np.hypot(mad_x, mad_y)
+    spread = poi_spread(tracks.dx[:, kept], tracks.dy[:, kept])
     return Measurement(tracks, filtered, valid, poi_kept_frac, spread, threshold)
 
 

@@ -81,3 +81,19 @@ def test_flag_invalid_catches_a_blocked_view() -> None:
     valid, threshold = flag_invalid(residual)
     assert not valid[40:45].any() and valid[:40].all() and valid[45:].all()
     assert 3.0 <= threshold < 25.0
+
+
+def test_incoherent_frames_are_flagged_even_with_a_low_residual():
+    """An occluder as bright as the structure: residual stays low, the POIs scatter."""
+    from flow.track import flag_incoherent, poi_spread
+
+    rng = np.random.default_rng(3)
+    frames, points = 40, 200
+    motion = np.sin(np.linspace(0, 6, frames))[:, None] * 3.0
+    dx = motion + rng.normal(0, 0.05, (frames, points)) + np.linspace(-0.3, 0.3, points)[None, :]
+    dy = rng.normal(0, 0.05, (frames, points))
+    blocked = np.arange(15, 22)
+    dx[blocked] = rng.normal(0, 8.0, (blocked.size, points))
+    dy[blocked] = rng.normal(0, 8.0, (blocked.size, points))
+    flagged = flag_incoherent(poi_spread(dx, dy))
+    assert np.flatnonzero(flagged).tolist() == blocked.tolist()

@@ -47,6 +47,7 @@ def metrics_files():
 
 def all_outputs():
     outputs = [f"{RESULTS}/summary.csv", f"{RESULTS}/summary.md", f"{RESULTS}/table1.md"]
+    outputs += rules.key_figures.output + rules.render_figures.output
     for scenario in SCENARIOS:
         outputs += [
             f"{RESULTS}/{scenario}/figures",

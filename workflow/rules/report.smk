@@ -31,3 +31,62 @@ rule scenario_figures:
         " --truth {input.truth} --render-json {input.render} --video {input.video}"
         " --mask {input.mask} --config {input.config} {params.track_args}"
         " --out-dir {output} > {log} 2>&1"
+
+
+KEY_SCENARIO = config.get("key_figures", {}).get("scenario", SCENARIOS[0])
+OCCLUSION_SCENARIO = config.get("key_figures", {}).get("occlusion_scenario")
+KEY_FIGURES = [
+    "fig6_poi_vs_corners",
+    "fig7_gradient_magnitude",
+    "fig8_time_histories",
+    "fig9_psd",
+]
+
+
+rule key_figures:
+    input:
+        ambient=f"{RESULTS}/{KEY_SCENARIO}/figures",
+        occlusion=(
+            [f"{RESULTS}/{OCCLUSION_SCENARIO}/figures"] if OCCLUSION_SCENARIO else []
+        ),
+    output:
+        [
+            report(
+                f"{RESULTS}/figures/{name}.png",
+                caption="../report/key_figures.rst",
+                category="Key figures",
+            )
+            for name in KEY_FIGURES
+        ]
+        + ([f"{RESULTS}/figures/fig10_occlusion.png"] if OCCLUSION_SCENARIO else []),
+    params:
+        names=KEY_FIGURES,
+        out_dir=f"{RESULTS}/figures",
+    log:
+        f"{RESULTS}/logs/key_figures.log",
+    shell:
+        "(for name in {params.names}; do cp {input.ambient}/$name.png {params.out_dir}/; done;"
+        " if [ -n '{input.occlusion}' ]; then cp {input.occlusion}/fig10_occlusion.png"
+        " {params.out_dir}/; fi) > {log} 2>&1"
+
+
+rule render_figures:
+    input:
+        config=f"{RESULTS}/{OCCLUSION_SCENARIO or KEY_SCENARIO}/config.yaml",
+        shapes=f"{RESULTS}/{OCCLUSION_SCENARIO or KEY_SCENARIO}/sim/shapes.npz",
+    output:
+        [
+            report(
+                f"{RESULTS}/figures/render_{view}.png",
+                caption="../report/render_figures.rst",
+                category="Key figures",
+            )
+            for view in ("full", "crop", "occluded")
+        ],
+    params:
+        out_dir=f"{RESULTS}/figures",
+    log:
+        f"{RESULTS}/logs/render_figures.log",
+    shell:
+        "python -m sim render figures --config {input.config} --shapes {input.shapes}"
+        " --out-dir {params.out_dir} > {log} 2>&1"
