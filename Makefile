@@ -5,6 +5,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 CORES ?= all
+# Rules call `python`, `refflow` and `snakemake`: the ones in .venv.
+export PATH := $(CURDIR)/$(BIN):$(PATH)
 export PYOPENGL_PLATFORM ?= egl
 export MPLBACKEND ?= Agg
 

@@ -15,6 +15,13 @@ validate(config, "workflow/schemas/config.schema.yaml")
 
 
 include: "workflow/rules/common.smk"
+
+
+wildcard_constraints:
+    scenario="|".join(map(re.escape, SCENARIOS)),
+    method="|".join(map(re.escape, METHODS + [m for s in SCENARIOS for m in scenario_methods(s)])),
+
+
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/track.smk"

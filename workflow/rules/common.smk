@@ -1,16 +1,13 @@
-# Helpers shared by the rule files: scenario configs, targets, paths.
+# Helpers shared by the stage files: scenario configs, targets, paths.
 import json
+import os
+import re
 
 from refflow.config import deep_merge
 
 RESULTS = config.get("results_dir", "results")
 SCENARIOS = list(config["scenarios"])
 METHODS = list(config["methods"])
-
-
-wildcard_constraints:
-    scenario="|".join(SCENARIOS),
-    method="|".join(METHODS),
 
 
 def scenario_config(scenario):
@@ -47,7 +44,7 @@ def metrics_files():
 
 def all_outputs():
     outputs = [f"{RESULTS}/summary.csv", f"{RESULTS}/summary.md", f"{RESULTS}/table1.md"]
-    outputs += rules.key_figures.output + rules.render_figures.output
+    outputs += key_figure_paths() + render_figure_paths()
     for scenario in SCENARIOS:
         outputs += [
             f"{RESULTS}/{scenario}/figures",
@@ -55,3 +52,22 @@ def all_outputs():
             f"{RESULTS}/{scenario}/metrics/modal.json",
         ]
     return outputs
+
+
+KEY_SCENARIO = config.get("key_figures", {}).get("scenario", SCENARIOS[0])
+OCCLUSION_SCENARIO = config.get("key_figures", {}).get("occlusion_scenario")
+KEY_FIGURES = [
+    "fig6_poi_vs_corners",
+    "fig7_gradient_magnitude",
+    "fig8_time_histories",
+    "fig9_psd",
+]
+
+
+def key_figure_paths():
+    names = KEY_FIGURES + (["fig10_occlusion"] if OCCLUSION_SCENARIO else [])
+    return [f"{RESULTS}/figures/{name}.png" for name in names]
+
+
+def render_figure_paths():
+    return [f"{RESULTS}/figures/render_{view}.png" for view in ("full", "crop", "occluded")]

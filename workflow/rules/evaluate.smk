@@ -11,6 +11,8 @@ rule evaluate:
         track=f"{RESULTS}/{{scenario}}/track/{{method}}.csv",
     output:
         f"{RESULTS}/{{scenario}}/metrics/{{method}}.json",
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/{{scenario}}/logs/evaluate_{{method}}.log",
     shell:
@@ -31,6 +33,8 @@ rule summary:
             category="Summary",
         ),
         md=f"{RESULTS}/summary.md",
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/logs/summary.log",
     shell:
@@ -44,6 +48,8 @@ rule table1:
     output:
         md=f"{RESULTS}/table1.md",
         csv=f"{RESULTS}/table1.csv",
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/logs/table1.log",
     shell:
@@ -57,6 +63,8 @@ rule modal:
         sim=f"{RESULTS}/{{scenario}}/sim/sim.json",
     output:
         f"{RESULTS}/{{scenario}}/metrics/modal.json",
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/{{scenario}}/logs/modal.log",
     shell:

@@ -13,6 +13,8 @@ rule render:
         sidecar=f"{RESULTS}/{{scenario}}/render/render.json",
     params:
         out_dir=subpath(output.sidecar, parent=True),
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/{{scenario}}/logs/render.log",
     benchmark:
@@ -27,6 +29,8 @@ rule calibration_set:
         f"{RESULTS}/{{scenario}}/config.yaml",
     output:
         directory(f"{RESULTS}/{{scenario}}/calibration/images"),
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/{{scenario}}/logs/calibration_set.log",
     shell:
@@ -41,6 +45,8 @@ rule calibrate:
     params:
         board=lookup(dpath="calibration/board", within=config, default="9x6"),
         square_mm=lookup(dpath="calibration/square_mm", within=config, default=25),
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/{{scenario}}/logs/calibrate.log",
     shell:

@@ -24,6 +24,8 @@ rule scenario_figures:
         ),
     params:
         track_args=lambda wc, input: " ".join(f"--track {t}" for t in input.tracks),
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/{{scenario}}/logs/figures.log",
     shell:
@@ -31,16 +33,6 @@ rule scenario_figures:
         " --truth {input.truth} --render-json {input.render} --video {input.video}"
         " --mask {input.mask} --config {input.config} {params.track_args}"
         " --out-dir {output} > {log} 2>&1"
-
-
-KEY_SCENARIO = config.get("key_figures", {}).get("scenario", SCENARIOS[0])
-OCCLUSION_SCENARIO = config.get("key_figures", {}).get("occlusion_scenario")
-KEY_FIGURES = [
-    "fig6_poi_vs_corners",
-    "fig7_gradient_magnitude",
-    "fig8_time_histories",
-    "fig9_psd",
-]
 
 
 rule key_figures:
@@ -51,17 +43,14 @@ rule key_figures:
         ),
     output:
         [
-            report(
-                f"{RESULTS}/figures/{name}.png",
-                caption="../report/key_figures.rst",
-                category="Key figures",
-            )
-            for name in KEY_FIGURES
-        ]
-        + ([f"{RESULTS}/figures/fig10_occlusion.png"] if OCCLUSION_SCENARIO else []),
+            report(path, caption="../report/key_figures.rst", category="Key figures")
+            for path in key_figure_paths()
+        ],
     params:
         names=KEY_FIGURES,
-        out_dir=f"{RESULTS}/figures",
+        out_dir=lambda wildcards, output: os.path.dirname(output[0]),
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/logs/key_figures.log",
     shell:
@@ -76,15 +65,13 @@ rule render_figures:
         shapes=f"{RESULTS}/{OCCLUSION_SCENARIO or KEY_SCENARIO}/sim/shapes.npz",
     output:
         [
-            report(
-                f"{RESULTS}/figures/render_{view}.png",
-                caption="../report/render_figures.rst",
-                category="Key figures",
-            )
-            for view in ("full", "crop", "occluded")
+            report(path, caption="../report/render_figures.rst", category="Key figures")
+            for path in render_figure_paths()
         ],
     params:
-        out_dir=f"{RESULTS}/figures",
+        out_dir=lambda wildcards, output: os.path.dirname(output[0]),
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/logs/render_figures.log",
     shell:

@@ -6,6 +6,8 @@ rule scenario_config:
         f"{RESULTS}/{{scenario}}/config.yaml",
     params:
         merged=scenario_config_json,
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/{{scenario}}/logs/config.log",
     shell:
@@ -17,6 +19,8 @@ rule modes:
         f"{RESULTS}/{{scenario}}/config.yaml",
     output:
         f"{RESULTS}/{{scenario}}/sim/modes.json",
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/{{scenario}}/logs/modes.log",
     shell:
@@ -32,6 +36,8 @@ rule simulate:
         sidecar=f"{RESULTS}/{{scenario}}/sim/sim.json",
     params:
         out_dir=subpath(output.sidecar, parent=True),
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/{{scenario}}/logs/simulate.log",
     benchmark:

@@ -12,6 +12,8 @@ rule track:
     params:
         options=track_args,
     threads: 2
+    conda:
+        "../envs/refflow.yaml"
     log:
         f"{RESULTS}/{{scenario}}/logs/track_{{method}}.log",
     benchmark:
