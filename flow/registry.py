@@ -21,15 +21,15 @@ from typing import Any
 import numpy as np
 
 
-class DenseMethod:
-    """Base class of dense reference-frame methods.
+class Method:
+    """What every registered method shares: its name, summary, kind and parameters.
 
-    Subclasses set ``name`` and ``summary`` (one line for ``refflow methods``)
-    and implement :meth:`calc`. Parameters are keyword-only constructor
-    arguments with the published defaults; :meth:`params` reports them.
+    Subclasses set ``summary`` (one line for ``refflow methods``); the registry
+    sets ``name``. Parameters are keyword-only constructor arguments with the
+    published defaults; :meth:`params` reports them.
     """
 
-    kind = "dense"
+    kind = ""
     name: str = ""
     summary: str = ""
 
@@ -39,6 +39,12 @@ class DenseMethod:
     def params(self) -> dict[str, Any]:
         """Parameters of this instance, for the JSON sidecar."""
         return dict(self._params)
+
+
+class DenseMethod(Method):
+    """Base class of dense reference-frame methods: implement :meth:`calc`."""
+
+    kind = "dense"
 
     def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         """Flow from ``reference`` to ``current``.

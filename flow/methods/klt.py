@@ -21,10 +21,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.registry import register
+from flow.registry import Method, register
 
 
-class SparseMethod:
+class SparseMethod(Method):
     """Base class of sparse methods that follow their own features.
 
     The driver calls :meth:`start` once with the reference frame, then
@@ -34,14 +34,6 @@ class SparseMethod:
     """
 
     kind = "sparse"
-    name: str = ""
-    summary: str = ""
-
-    def __init__(self, **params: Any) -> None:
-        self._params = dict(params)
-
-    def params(self) -> dict[str, Any]:
-        return dict(self._params)
 
     def detect(self, reference: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
         """Feature positions ``(N, 2)`` float32 in ``reference`` (Harris or Shi-Tomasi)."""
