@@ -56,3 +56,20 @@ def test_rerun_does_nothing(workbench):
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert "Nothing to be done" in run.stdout + run.stderr
+
+
+def test_changing_a_tracking_parameter_reruns_only_tracking(workbench, tmp_path):
+    import yaml
+
+    config = yaml.safe_load((ROOT / "config/ci.yaml").read_text())
+    config["defaults"]["track"]["methods"]["dis"] = {"preset": "fast"}
+    changed = tmp_path / "ci_changed.yaml"
+    changed.write_text(yaml.safe_dump(config))
+    run = subprocess.run([str(BIN / "snakemake"), "--cores", "1", "--configfile", str(changed),
+                          "--config", f"results_dir={workbench}", "-n"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    jobs = {line.split()[0] for line in run.stdout.splitlines()
+            if line[:1].isalpha() and len(line.split()) == 2 and line.split()[1].isdigit()}
+    assert "track" in jobs, run.stdout
+    assert not jobs & {"simulate", "render", "modes"}, f"re-ran upstream stages: {sorted(jobs)}"

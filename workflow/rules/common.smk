@@ -19,6 +19,24 @@ def scenario_config_json(wildcards):
     return json.dumps(scenario_config(wildcards.scenario), sort_keys=True)
 
 
+# The config sections each stage reads: a stage re-runs only when its own sections change
+# (a new tracking parameter does not re-render the video).
+STAGE_SECTIONS = {
+    "sim": ["seed", "duration_s", "beam", "damping", "excitation", "sensor", "simulation"],
+    "render": ["seed", "duration_s", "camera", "scene", "occlusion", "codec", "sensor"],
+}
+
+
+def stage_config_json(wildcards):
+    merged = scenario_config(wildcards.scenario)
+    sections = STAGE_SECTIONS[wildcards.stage]
+    return json.dumps({key: merged[key] for key in sections if key in merged}, sort_keys=True)
+
+
+def stage_config(stage):
+    return f"{RESULTS}/{{scenario}}/config/{stage}.yaml"
+
+
 def scenario_methods(scenario):
     return scenario_config(scenario).get("methods", METHODS)
 

@@ -3,7 +3,7 @@
 
 rule render:
     input:
-        config=f"{RESULTS}/{{scenario}}/config.yaml",
+        config=stage_config("render"),
         shapes=f"{RESULTS}/{{scenario}}/sim/shapes.npz",
     output:
         video=f"{RESULTS}/{{scenario}}/render/video.mp4",
@@ -26,7 +26,7 @@ rule render:
 
 rule calibration_set:
     input:
-        f"{RESULTS}/{{scenario}}/config.yaml",
+        stage_config("render"),
     output:
         directory(f"{RESULTS}/{{scenario}}/calibration/images"),
     conda:

@@ -61,7 +61,7 @@ rule key_figures:
 
 rule render_figures:
     input:
-        config=f"{RESULTS}/{OCCLUSION_SCENARIO or KEY_SCENARIO}/config.yaml",
+        config=f"{RESULTS}/{OCCLUSION_SCENARIO or KEY_SCENARIO}/config/render.yaml",
         shapes=f"{RESULTS}/{OCCLUSION_SCENARIO or KEY_SCENARIO}/sim/shapes.npz",
     output:
         [

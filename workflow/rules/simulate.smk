@@ -14,9 +14,24 @@ rule scenario_config:
         "python -m refflow.config --json {params.merged:q} --out {output} > {log} 2>&1"
 
 
+rule stage_config:
+    output:
+        f"{RESULTS}/{{scenario}}/config/{{stage}}.yaml",
+    params:
+        sections=stage_config_json,
+    wildcard_constraints:
+        stage="|".join(STAGE_SECTIONS),
+    conda:
+        "../envs/refflow.yaml"
+    log:
+        f"{RESULTS}/{{scenario}}/logs/config_{{stage}}.log",
+    shell:
+        "python -m refflow.config --json {params.sections:q} --out {output} > {log} 2>&1"
+
+
 rule modes:
     input:
-        f"{RESULTS}/{{scenario}}/config.yaml",
+        stage_config("sim"),
     output:
         f"{RESULTS}/{{scenario}}/sim/modes.json",
     conda:
@@ -29,7 +44,7 @@ rule modes:
 
 rule simulate:
     input:
-        f"{RESULTS}/{{scenario}}/config.yaml",
+        stage_config("sim"),
     output:
         sensor=f"{RESULTS}/{{scenario}}/sim/sensor.csv",
         shapes=f"{RESULTS}/{{scenario}}/sim/shapes.npz",
