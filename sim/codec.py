@@ -75,7 +75,9 @@ class VideoWriter:
             cmd += ["-c:v", "libx264", "-preset", cfg.preset, "-profile:v", cfg.profile,
                     "-pix_fmt", "yuv420p", "-b:v", str(rate), "-maxrate", str(int(rate * 1.5)),
                     "-bufsize", str(rate), "-g", str(cfg.gop_frames), "-bf", "0",
-                    "-threads", "2", "-x264-params", "log-level=error",
+                    # One thread: x264's frame-threaded rate control makes the bytes (and
+                    # from frame ~140 on, the pixels) differ from run to run.
+                    "-threads", "1", "-x264-params", "log-level=error",
                     "-movflags", "+faststart", "-f", "mp4"]
         else:
             cmd += ["-c:v", "ffv1", "-level", "3", "-pix_fmt", "bgr0", "-g", "1", "-f", "matroska"]
