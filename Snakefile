@@ -5,8 +5,9 @@ from snakemake.utils import min_version, validate
 min_version("8.0")
 
 
-# `--configfile config/ci.yaml` replaces the default config instead of merging into it.
-if not config:
+# `--configfile config/ci.yaml` replaces the default config instead of merging into it
+# (scenario dicts would otherwise mix); `--config key=value` alone still reads the default.
+if not workflow.overwrite_configfiles:
 
     configfile: "config/config.yaml"
 
@@ -32,4 +33,5 @@ include: "workflow/rules/report.smk"
 rule all:
     input:
         all_outputs(),
+        f"{RESULTS}/timings.md",
     default_target: True

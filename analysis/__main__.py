@@ -160,6 +160,12 @@ def cmd_gates(args: argparse.Namespace) -> int:
     return 0 if all(r["passed"] for r in rows) else 1
 
 
+def cmd_timings(args: argparse.Namespace) -> None:
+    from .timings import write_timings
+    n = write_timings(args.results_dir, args.rules, args.out)
+    print(f"{n} benchmark files -> {args.out}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m analysis", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -212,6 +218,11 @@ def build_parser() -> argparse.ArgumentParser:
     ga.add_argument("--gates", required=True, help="gates YAML")
     ga.add_argument("--out", help="JSON with every gate's result")
     ga.set_defaults(func=cmd_gates)
+    ti = sub.add_parser("timings", help="per-rule wall time and memory from Snakemake benchmark files")
+    ti.add_argument("results_dir", help="folder holding <scenario>/benchmarks/*.tsv")
+    ti.add_argument("--rules", nargs="+", required=True, help="the workflow's rule names")
+    ti.add_argument("--out", required=True, help="Markdown file to write")
+    ti.set_defaults(func=cmd_timings)
     return parser
 
 

@@ -56,8 +56,11 @@ def write_summary_csv(rows: list[dict[str, Any]], out: str | os.PathLike[str]) -
 
 def summary_markdown(rows: list[dict[str, Any]]) -> str:
     """Table-1 style Markdown: one block per scenario, the reference sensor last."""
+    cutoffs = sorted({_fmt((row.get("params") or {}).get("lowpass_hz"), 3) for row in rows} - {""})
+    lowpass = " / ".join(cutoffs) or "30"
     lines = ["# Displacement accuracy (simulated)", "",
-             "Error = measured - reference (laser sensor, 30 Hz zero-phase Butterworth, synchronised).", ""]
+             f"Error = measured - reference (laser sensor, {lowpass} Hz zero-phase Butterworth, "
+             "synchronised).", ""]
     scenarios: dict[str, list[dict[str, Any]]] = {}
     for row in rows:
         scenarios.setdefault(str(row["scenario"]), []).append(row)

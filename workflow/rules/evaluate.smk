@@ -13,6 +13,8 @@ rule evaluate:
         f"{RESULTS}/{{scenario}}/metrics/{{method}}.json",
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/evaluate_{{method}}.tsv"
     log:
         f"{RESULTS}/{{scenario}}/logs/evaluate_{{method}}.log",
     shell:
@@ -35,6 +37,8 @@ rule summary:
         md=f"{RESULTS}/summary.md",
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/benchmarks/summary.tsv"
     log:
         f"{RESULTS}/logs/summary.log",
     shell:
@@ -50,6 +54,8 @@ rule table1:
         csv=f"{RESULTS}/table1.csv",
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/benchmarks/table1.tsv"
     log:
         f"{RESULTS}/logs/table1.log",
     shell:
@@ -65,6 +71,8 @@ rule modal:
         f"{RESULTS}/{{scenario}}/metrics/modal.json",
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/modal.tsv"
     log:
         f"{RESULTS}/{{scenario}}/logs/modal.log",
     shell:

@@ -31,6 +31,8 @@ rule calibration_set:
         directory(f"{RESULTS}/{{scenario}}/calibration/images"),
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/calibration_set.tsv"
     log:
         f"{RESULTS}/{{scenario}}/logs/calibration_set.log",
     shell:
@@ -47,6 +49,8 @@ rule calibrate:
         square_mm=lookup(dpath="calibration/square_mm", within=config, default=25),
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/calibrate.tsv"
     log:
         f"{RESULTS}/{{scenario}}/logs/calibrate.log",
     shell:

@@ -26,6 +26,8 @@ rule scenario_figures:
         track_args=lambda wc, input: " ".join(f"--track {t}" for t in input.tracks),
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/scenario_figures.tsv"
     log:
         f"{RESULTS}/{{scenario}}/logs/figures.log",
     shell:
@@ -51,6 +53,8 @@ rule key_figures:
         out_dir=lambda wildcards, output: os.path.dirname(output[0]),
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/benchmarks/key_figures.tsv"
     log:
         f"{RESULTS}/logs/key_figures.log",
     shell:
@@ -72,8 +76,28 @@ rule render_figures:
         out_dir=lambda wildcards, output: os.path.dirname(output[0]),
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/benchmarks/render_figures.tsv"
     log:
         f"{RESULTS}/logs/render_figures.log",
     shell:
         "python -m sim render figures --config {input.config} --shapes {input.shapes}"
         " --out-dir {params.out_dir} > {log} 2>&1"
+
+
+rule timings:
+    input:
+        all_outputs(),
+    output:
+        f"{RESULTS}/timings.md",
+    params:
+        results=subpath(output[0], parent=True),
+        # Every rule of this workflow: benchmark file names start with one of them.
+        rules=lambda wildcards: " ".join(sorted(r.name for r in workflow.rules)),
+    conda:
+        "../envs/refflow.yaml"
+    log:
+        f"{RESULTS}/logs/timings.log",
+    shell:
+        "python -m analysis timings {params.results} --rules {params.rules} --out {output}"
+        " > {log} 2>&1"

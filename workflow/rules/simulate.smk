@@ -8,6 +8,8 @@ rule scenario_config:
         merged=scenario_config_json,
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/scenario_config.tsv"
     log:
         f"{RESULTS}/{{scenario}}/logs/config.log",
     shell:
@@ -23,6 +25,8 @@ rule stage_config:
         stage="|".join(STAGE_SECTIONS),
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/stage_config_{{stage}}.tsv"
     log:
         f"{RESULTS}/{{scenario}}/logs/config_{{stage}}.log",
     shell:
@@ -36,6 +40,8 @@ rule modes:
         f"{RESULTS}/{{scenario}}/sim/modes.json",
     conda:
         "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/modes.tsv"
     log:
         f"{RESULTS}/{{scenario}}/logs/modes.log",
     shell:
