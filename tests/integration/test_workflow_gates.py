@@ -58,6 +58,40 @@ def test_rerun_does_nothing(workbench):
     assert "Nothing to be done" in run.stdout + run.stderr
 
 
+def _dry_run(config_path: Path, results: Path) -> str:
+    run = subprocess.run([str(BIN / "snakemake"), "--cores", "1", "--configfile", str(config_path),
+                          "--config", f"results_dir={results}", "-n"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    return run.stdout
+
+
+def test_changing_one_scenario_reruns_only_that_scenario(workbench, tmp_path):
+    import yaml
+
+    config = yaml.safe_load((ROOT / "config/ci.yaml").read_text())
+    config["scenarios"]["occlusion"]["occlusion"]["start_s"] += 0.25
+    changed = tmp_path / "ci_occlusion_changed.yaml"
+    changed.write_text(yaml.safe_dump(config))
+    out = _dry_run(changed, workbench)
+    scenarios = {line.split("scenario=")[1].split(",")[0].strip()
+                 for line in out.splitlines() if "wildcards:" in line and "scenario=" in line}
+    assert scenarios == {"occlusion"}, out[-3000:]
+    assert "rule render:" in out
+
+
+def test_report_is_browsable(workbench, tmp_path):
+    report = tmp_path / "report.html"
+    run = subprocess.run([str(BIN / "snakemake"), "--configfile", "config/ci.yaml",
+                          "--config", f"results_dir={workbench}", "--report", str(report)],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    html = report.read_text(errors="replace")
+    # captions of the summary table and the figures, and the figures themselves
+    assert "Accuracy of every method" in html and "fig8_time_histories" in html
+    assert report.stat().st_size > 100_000
+
+
 def test_changing_a_tracking_parameter_reruns_only_tracking(workbench, tmp_path):
     import yaml
 
