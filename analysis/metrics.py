@@ -80,7 +80,9 @@ def occlusion_metrics(time_s: np.ndarray, error_mm: np.ndarray, valid: np.ndarra
     pre-occlusion RMSE, at least 0.02 mm) of the pre-occlusion bias; ``None``
     (NaN) if that never happens before the record ends. ``threshold_mm`` sets
     both thresholds. The post-occlusion offset is the mean error in the
-    ``post_s`` after the view returns.
+    ``post_s`` after the view returns minus the mean error before the
+    occlusion (the step the occlusion left, paper Fig. 10);
+    ``post_occlusion_error_mm`` is that mean error itself.
     """
     time_s = np.asarray(time_s, float)
     error_mm = np.asarray(error_mm, float)
@@ -131,7 +133,10 @@ def occlusion_metrics(time_s: np.ndarray, error_mm: np.ndarray, valid: np.ndarra
         "occlusion_max_error_mm": float(np.max(np.abs(error_mm[during]))) if during.any() else float("nan"),
         "occluded_flagged_invalid_frac": float(np.mean(~valid[first:stop])),
         "pre_occlusion_rmse_mm": pre_rmse,
-        "post_occlusion_offset_mm": float(np.mean(error_mm[post_ok])) if post_ok.any() else float("nan"),
+        # the jump the occlusion left: the mean error after it against the mean error before it
+        # (a method's constant bias is in rmse/bias, not here)
+        "post_occlusion_offset_mm": float(np.mean(error_mm[post_ok]) - pre_bias) if post_ok.any() else float("nan"),
+        "post_occlusion_error_mm": float(np.mean(error_mm[post_ok])) if post_ok.any() else float("nan"),
         "post_occlusion_rmse_mm": rmse(error_mm[post_ok]),
         "recovery_threshold_mm": float(point_thr),
         "recovery_offset_threshold_mm": float(offset_thr),

@@ -17,7 +17,7 @@ SUMMARY_COLUMNS = (
     "max_disp_ref_mm", "max_disp_ref_1khz_mm", "max_disp_error_pct", "max_error_mm", "bias_mm", "drift_mm_per_s",
     "lowfreq_power_ratio", "mode1_amplitude_ratio", "mode1_meas_peak_hz", "mode3_expected_hz",
     "mode3_meas_peak_hz", "sync_lag_s", "sync_lag_error_ms", "valid_frac", "rmse_vs_truth_mm", "rmse_unoccluded_mm",
-    "occlusion_rmse_mm", "post_occlusion_offset_mm", "post_occlusion_rmse_mm", "recovery_time_s",
+    "occlusion_rmse_mm", "post_occlusion_offset_mm", "post_occlusion_error_mm", "post_occlusion_rmse_mm", "recovery_time_s",
     "occluded_flagged_invalid_frac",
 )
 

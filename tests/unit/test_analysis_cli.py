@@ -45,7 +45,7 @@ def test_evaluate_writes_documented_keys(metrics):
     for key in ("rmse_mm", "rmse_px", "max_error_mm", "bias_mm", "drift_mm_per_s", "max_disp_meas_mm",
                 "max_disp_ref_mm", "max_disp_error_pct", "rmse_pct_of_max_ref", "lowfreq_power_ratio",
                 "mode1_amplitude_ratio", "mode3_expected_hz", "sync_lag_s", "occlusion_rmse_mm",
-                "post_occlusion_offset_mm", "recovery_time_s", "occluded_flagged_invalid_frac",
+                "post_occlusion_offset_mm", "post_occlusion_error_mm", "recovery_time_s", "occluded_flagged_invalid_frac",
                 "method", "scenario", "versions"):
         assert key in data, key
     assert data["method"] == "proposed" and data["scenario"] == "occlusion"
@@ -67,7 +67,9 @@ def test_evaluate_sees_planted_klt_errors(metrics, scenario):
     # planted 0.4 mm step + 0.01 mm/s drift (~0.095 mm at 9-10 s); the 0.83 scale
     # error on the frame-0 datum adds 0.17 x0 (the beam oscillates about 0 later)
     assert data["datum_offset_mm"] == pytest.approx(x0, abs=0.05)  # ref lacks mode 3 (30 Hz low-pass)
-    assert data["post_occlusion_offset_mm"] == pytest.approx(0.495 + 0.17 * data["datum_offset_mm"], abs=0.03)
+    assert data["post_occlusion_error_mm"] == pytest.approx(0.495 + 0.17 * data["datum_offset_mm"], abs=0.03)
+    # the step itself: 0.4 mm plus the drift between the mean times before (~4 s) and after (9.5 s)
+    assert data["post_occlusion_offset_mm"] == pytest.approx(0.4 + 0.01 * (9.5 - 4.0), abs=0.03)
     assert data["recovery_time_s"] is None  # never recovers
     assert data["lowfreq_power_ratio"] > 100
 
