@@ -3,9 +3,11 @@
 Usage: ``python benchmarks/bench_render.py [--runs 3] [--frames 12] [--skip-4k]``
 
 Prints frames/s (median of ``--runs`` runs) for the default ~800x400 crop and
-for full 4K frames, the split of a crop frame's time, and peak resident memory
-of `render_clip` subprocesses for clips of increasing length (frames stream
-into ffmpeg, so memory should not grow with the clip). Software EGL (Mesa) on a
+for full 4K frames, the split of a frame's time (a whole-window sub-frame
+render, a strip sub-frame render, remap, sensor, auto-exposure meter, truth),
+and peak resident memory of `render_clip` subprocesses for crop clips of
+increasing length with a verdict: frames stream into ffmpeg and the truth into
+its files, so memory should not grow with the clip. Software EGL (Mesa) on a
 shared machine: read the numbers as this machine's, not the method's.
 """
 
@@ -26,7 +28,18 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
+def _seconds(fn, repeat: int = 3) -> float:
+    """Median wall time of ``fn()`` over ``repeat`` calls."""
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
 def throughput(full_frame: bool, frames: int, runs: int) -> dict:
+    from sim.camera import sensor_readout
     from sim.render import BeamRenderer
     from sim.scene import BeamShapes, synthetic_shapes
     shapes = BeamShapes(**synthetic_shapes(duration_s=2.0))
@@ -35,7 +48,7 @@ def throughput(full_frame: bool, frames: int, runs: int) -> dict:
     setup = time.perf_counter() - t0
     try:
         gains = r.gains(frames)
-        r.frame(0, gains[0])  # warm-up (shader compile, texture upload)
+        r.frame(0, gains[0])  # warm-up (shader compile, texture upload, background)
         rates = []
         for _ in range(runs):
             t0 = time.perf_counter()
@@ -43,23 +56,22 @@ def throughput(full_frame: bool, frames: int, runs: int) -> dict:
                 r.frame(i, gains[i])
             rates.append(frames / (time.perf_counter() - t0))
         # where a frame's time goes
-        t0 = time.perf_counter()
         und = r.render_undistorted(0.01)
-        t_render = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        r.plan.apply(und)
-        t_remap = time.perf_counter() - t0
+        split = {"whole_subframe_s": _seconds(lambda: r.render_undistorted(0.01)),
+                 "remap_s": _seconds(lambda: r.plan.apply(und)),
+                 "meter_s": _seconds(lambda: r.meter(1)),
+                 "truth_s": _seconds(lambda: r.truth_frame(1))}
+        if r.strip is not None and r.strip[1] > r.strip[0]:
+            split["strip_subframe_s"] = _seconds(lambda: r._render_window(r._strip_window(), 0.01))
+            split["strip_px"] = r.strip[1] - r.strip[0]
         lin = r.frame_linear(1)
-        from sim.camera import sensor_readout
-        t0 = time.perf_counter()
-        sensor_readout(lin, gains[1], r.cam_cfg, seed=0, frame=1, window=r.window)
-        t_sensor = time.perf_counter() - t0
+        split["sensor_s"] = _seconds(lambda: sensor_readout(lin, gains[1], r.cam_cfg, seed=0,
+                                                            frame=1, window=r.window))
     finally:
         r.close()
     return {"size": f"{r.window.width}x{r.window.height}", "fps_median": float(np.median(rates)),
             "fps_runs": [round(x, 3) for x in rates], "setup_s": setup,
-            "subframes": r.cam_cfg.motion_blur_subframes, "subframe_render_s": t_render,
-            "remap_s": t_remap, "sensor_s": t_sensor}
+            "subframes": r.cam_cfg.motion_blur_subframes, **split}
 
 
 def peak_memory(frames: int, tmp: Path) -> dict:
@@ -95,26 +107,35 @@ def main() -> None:
     args = ap.parse_args()
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     results = {"cpu_count": os.cpu_count()}
-    crop = throughput(False, args.frames, args.runs)
-    results["crop"] = crop
-    print(f"crop {crop['size']}: {crop['fps_median']:.2f} frames/s (median of {args.runs}; "
-          f"runs {crop['fps_runs']}; target >= 15); per frame: {crop['subframes']} sub-frames x "
-          f"{crop['subframe_render_s'] * 1e3:.1f} ms render, remap {crop['remap_s'] * 1e3:.1f} ms, "
-          f"sensor {crop['sensor_s'] * 1e3:.1f} ms")
-    if not args.skip_4k:
-        full = throughput(True, args.frames_4k, args.runs)
-        results["full"] = full
-        print(f"full {full['size']}: {full['fps_median']:.3f} frames/s (median of {args.runs}; "
-              f"target >= 2); sub-frame render {full['subframe_render_s']:.2f} s, "
-              f"remap {full['remap_s']:.2f} s, sensor {full['sensor_s']:.2f} s, "
-              f"set-up {full['setup_s']:.1f} s")
-        print(f"ratio crop/full frames per second: {crop['fps_median'] / full['fps_median']:.1f}")
+    views = [("crop", False, args.frames, 15)] + ([] if args.skip_4k else
+                                                 [("full", True, args.frames_4k, 2)])
+    for name, full_frame, frames, target in views:
+        res = throughput(full_frame, frames, args.runs)
+        results[name] = res
+        ms = {k: f"{v * 1e3:.1f} ms" for k, v in res.items() if k.endswith("_s") and k != "setup_s"}
+        print(f"{name} {res['size']}: {res['fps_median']:.2f} frames/s (median of {args.runs}; "
+              f"runs {res['fps_runs']}; target >= {target}: "
+              f"{'met' if res['fps_median'] >= target else 'MISSED'}); {res['subframes']} "
+              f"sub-frames; strip {res.get('strip_px', '-')} px wide; {ms}; "
+              f"set-up {res['setup_s']:.1f} s")
+    if "full" in results:
+        print(f"ratio crop/full frames per second: "
+              f"{results['crop']['fps_median'] / results['full']['fps_median']:.1f}")
     with tempfile.TemporaryDirectory() as tmp:
         mem = [peak_memory(int(n), Path(tmp)) for n in args.memory_frames.split(",")]
     results["memory"] = mem
     for m in mem:
         print(f"clip of {m['frames']:4d} crop frames: peak RSS {m['peak_rss_mib']:.0f} MiB, "
               f"wall {m['wall_s']:.1f} s")
+    growth = mem[-1]["peak_rss_mib"] - mem[0]["peak_rss_mib"]
+    # flat: the longest clip peaks within 16 MiB or 5 % of the shortest's peak
+    flat = growth <= max(16.0, 0.05 * mem[0]["peak_rss_mib"])
+    per_frame_kib = 1024 * growth / max(mem[-1]["frames"] - mem[0]["frames"], 1)
+    results["memory_verdict"] = {"flat": bool(flat), "growth_mib": growth,
+                                 "growth_kib_per_frame": per_frame_kib}
+    print(f"memory verdict: {'FLAT' if flat else 'GROWS'} in clip length "
+          f"({growth:+.1f} MiB from {mem[0]['frames']} to {mem[-1]['frames']} frames, "
+          f"{per_frame_kib:+.1f} KiB/frame)")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2) + "\n")
 

@@ -7,9 +7,20 @@ and a *crop* is a window ``{x, y, width, height}`` of it.
 Distortion is applied exactly: for every output (distorted) pixel we solve
 ``distort(x_u) = x_d`` by Newton iteration to machine precision, then sample
 an undistorted pinhole render with ``cv2.remap`` using fixed-point maps that
-depend only on the *global* pixel position, so a crop reproduces the full
-frame's pixels bit for bit. Noise is a counter-based hash of (seed, frame,
-global pixel, channel) for the same reason.
+depend only on the *global* pixel position, so a crop gets the same maps as the
+full frame. Noise is a counter-based hash of (seed, frame, global pixel,
+channel) for the same reason.
+
+Exposure (:class:`SubframeSampling`): the exposure of every sensor row is split
+into bins of a grid shared by all rows; a sub-frame is rendered at each bin
+centre and every row averages the bins its exposure overlaps, weighted by the
+overlap, so a row's exposure centroid is exact and the rolling-shutter skew is
+continuous in the row (not stair-stepped at the sub-frame spacing).
+
+Sensor (:func:`sensor_readout`): electrons = full well x exposure-normalised
+irradiance; shot noise (Poisson, Gaussian approximation) and read noise are
+added in electrons, the well clips; then the analog gain (ISO) amplifies
+signal and noise together; gamma; 8 bits.
 """
 
 from __future__ import annotations
@@ -58,6 +69,16 @@ class CameraConfig:
     ae_max_gain: float = 4.0
     ae_metering_width_px: int = 192
     supersample: int = 1             # render at this factor and area-average (on top of 4x MSAA)
+    # tripod shake: band-limited random rotation + translation of the camera (sim.disturbance)
+    shake: bool = False
+    shake_rotation_mrad: float = 0.05     # RMS per camera axis
+    shake_translation_mm: float = 0.02    # RMS per camera axis
+    shake_band_hz: tuple[float, float] = (2.0, 15.0)
+    # thermal drift of the mount: rotation/translation approaching these values
+    drift: bool = False
+    drift_rotation_mrad: tuple[float, float, float] = (0.5, 1.0, 0.0)  # about camera x, y, z
+    drift_translation_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # camera x right, y down, z fwd
+    drift_time_constant_s: float = 30.0
 
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> CameraConfig:
@@ -74,6 +95,20 @@ class CameraConfig:
         if cfg.rolling_shutter_s < 0 or cfg.rolling_shutter_s > 1 / cfg.fps:
             raise ValueError(f"camera.rolling_shutter_s must be in [0, 1/fps], got "
                              f"{cfg.rolling_shutter_s!r}")
+        if cfg.shake_rotation_mrad < 0 or cfg.shake_translation_mm < 0:
+            raise ValueError(f"camera.shake_rotation_mrad / shake_translation_mm must be >= 0, got "
+                             f"{cfg.shake_rotation_mrad!r} / {cfg.shake_translation_mm!r}")
+        band = cfg.shake_band_hz
+        if len(band) != 2 or not 0 < band[0] < band[1]:
+            raise ValueError(f"camera.shake_band_hz must be [low, high] with 0 < low < high, "
+                             f"got {list(band)!r}")
+        for key in ("drift_rotation_mrad", "drift_translation_mm"):
+            if len(getattr(cfg, key)) != 3:
+                raise ValueError(f"camera.{key} must have 3 entries (camera x, y, z), got "
+                                 f"{list(getattr(cfg, key))!r}")
+        if cfg.drift_time_constant_s <= 0:
+            raise ValueError(f"camera.drift_time_constant_s must be > 0, got "
+                             f"{cfg.drift_time_constant_s!r}")
         if cfg.crop_width_px > cfg.width_px or cfg.crop_height_px > cfg.height_px:
             raise ValueError(f"camera.crop {cfg.crop_width_px}x{cfg.crop_height_px} is larger "
                              f"than the sensor {cfg.width_px}x{cfg.height_px}")
@@ -91,6 +126,12 @@ class Window:
 
     def as_dict(self) -> dict[str, int]:
         return {"x": self.x, "y": self.y, "width": self.width, "height": self.height}
+
+
+# A rigid motion of the camera away from its nominal pose: ``(R, T)`` with the
+# rotation R (3 x 3) and the camera centre T (mm), both in the *nominal* OpenCV
+# camera frame (x right, y down, z forward). See sim.disturbance.CameraMotion.
+Motion = tuple[np.ndarray, np.ndarray]
 
 
 class CameraModel:
@@ -117,19 +158,27 @@ class CameraModel:
         """OpenCV order ``(k1, k2, p1, p2, k3)``."""
         return np.array([self.k1, self.k2, self.p1, self.p2, 0.0])
 
-    def pose(self) -> np.ndarray:
-        """pyrender camera pose (camera -z = world +y, camera +y = world +z)."""
+    # world from the nominal OpenCV camera frame: x_cv = world x, y_cv = world -z
+    # (image down), z_cv = world +y (the viewing direction)
+    _WORLD_FROM_CV = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+
+    def pose(self, motion: Motion | None = None) -> np.ndarray:
+        """pyrender camera pose (camera -z = world +y, camera +y = world +z), moved by ``motion``."""
+        rot, centre = (np.eye(3), np.zeros(3)) if motion is None else motion
         pose = np.eye(4)
-        pose[:3, 0] = (1, 0, 0)
-        pose[:3, 1] = (0, 0, 1)
-        pose[:3, 2] = (0, -1, 0)
-        pose[:3, 3] = (0, self.camera_y_mm, self.aim_z_mm)
+        # pyrender's camera axes are OpenCV's with y and z flipped
+        pose[:3, :3] = self._WORLD_FROM_CV @ rot @ np.diag([1.0, -1.0, -1.0])
+        pose[:3, 3] = self._WORLD_FROM_CV @ centre + (0, self.camera_y_mm, self.aim_z_mm)
         return pose
 
-    def world_to_camera(self, points: np.ndarray) -> np.ndarray:
-        """OpenCV camera frame (x right, y down, z forward)."""
+    def world_to_camera(self, points: np.ndarray, motion: Motion | None = None) -> np.ndarray:
+        """OpenCV camera frame (x right, y down, z forward) of the nominal or moved camera."""
         p = np.asarray(points, np.float64)
-        return np.stack([p[..., 0], -(p[..., 2] - self.aim_z_mm), p[..., 1] - self.camera_y_mm], -1)
+        nominal = np.stack([p[..., 0], -(p[..., 2] - self.aim_z_mm), p[..., 1] - self.camera_y_mm], -1)
+        if motion is None:
+            return nominal
+        rot, centre = motion
+        return (nominal - centre) @ rot  # R^T (X - T) for row vectors
 
     def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r2 = x * x + y * y
@@ -138,9 +187,14 @@ class CameraModel:
         yd = y * radial + self.p1 * (r2 + 2 * y * y) + 2 * self.p2 * x * y
         return xd, yd
 
-    def undistort(self, xd: np.ndarray, yd: np.ndarray, iterations: int = 20
+    def undistort(self, xd: np.ndarray, yd: np.ndarray, iterations: int = 8
                   ) -> tuple[np.ndarray, np.ndarray]:
-        """Exact inverse of :meth:`distort` (Newton, converges to ~1e-15)."""
+        """Exact inverse of :meth:`distort` (Newton from ``(xd, yd)``).
+
+        Newton doubles the correct digits per step: a phone lens converges to the
+        last bit in 4-5 steps. The count is fixed (no data-dependent early stop),
+        so a pixel gets the same bits whichever window it is computed in.
+        """
         xd = np.asarray(xd, np.float64)
         yd = np.asarray(yd, np.float64)
         x, y = xd.copy(), yd.copy()
@@ -155,35 +209,44 @@ class CameraModel:
             b = x * y * drad + 2 * p1 * x + 2 * p2 * y
             d = radial + y * y * drad + 6 * p1 * y + 2 * p2 * x
             det = a * d - b * b
-            step_x = (d * fx - b * fy) / det
-            step_y = (a * fy - b * fx) / det
-            x = x - step_x
-            y = y - step_y
-            if max(np.abs(step_x).max(initial=0), np.abs(step_y).max(initial=0)) < 1e-16:
-                break  # converged to the last bit (Newton doubles the digits per step)
+            x = x - (d * fx - b * fy) / det
+            y = y - (a * fy - b * fx) / det
+        rx, ry = self.distort(x, y)
+        residual = max(np.abs(rx - xd).max(initial=0), np.abs(ry - yd).max(initial=0))
+        if not residual < 1e-12:
+            raise ValueError(f"lens distortion (k1={self.k1}, k2={self.k2}) cannot be inverted "
+                             f"over the sensor (residual {residual:.2g}): lower |k1|, |k2|")
         return x, y
 
-    def project(self, points: np.ndarray) -> np.ndarray:
+    def project(self, points: np.ndarray, motion: Motion | None = None) -> np.ndarray:
         """World points (…, 3) in mm -> distorted sensor pixels (…, 2)."""
-        c = self.world_to_camera(points)
+        c = self.world_to_camera(points, motion)
         xd, yd = self.distort(c[..., 0] / c[..., 2], c[..., 1] / c[..., 2])
         return np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], -1)
-
-    def project_undistorted(self, points: np.ndarray) -> np.ndarray:
-        c = self.world_to_camera(points)
-        return np.stack([self.fx * c[..., 0] / c[..., 2] + self.cx,
-                         self.fy * c[..., 1] / c[..., 2] + self.cy], -1)
 
     def pixel_rays(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distorted pixels -> undistorted normalised coordinates."""
         return self.undistort((np.asarray(u, np.float64) - self.cx) / self.fx,
                               (np.asarray(v, np.float64) - self.cy) / self.fy)
 
-    def backproject_to_plane_y(self, u, v, plane_y_mm: float) -> np.ndarray:
+    def backproject_to_plane_y(self, u, v, plane_y_mm: float,
+                               motion: Motion | None = None) -> np.ndarray:
         """World points where the rays of pixels (u, v) meet the plane y = plane_y_mm."""
         x, y = self.pixel_rays(u, v)
-        depth = plane_y_mm - self.camera_y_mm
-        return np.stack([x * depth, np.full_like(x, plane_y_mm), self.aim_z_mm - y * depth], -1)
+        return self.rays_to_plane_y(x, y, plane_y_mm, motion)
+
+    def rays_to_plane_y(self, x: np.ndarray, y: np.ndarray, plane_y_mm: float,
+                        motion: Motion | None = None) -> np.ndarray:
+        """World points where normalised rays ``(x, y, 1)`` meet the plane y = plane_y_mm."""
+        depth = plane_y_mm - self.camera_y_mm          # the plane in the nominal camera frame
+        ray = np.stack([x, y, np.ones_like(x)], -1)
+        if motion is None:
+            pts = ray * depth
+        else:
+            rot, centre = motion
+            ray = ray @ rot.T
+            pts = centre + ray * ((depth - centre[2]) / ray[..., 2])[..., None]
+        return np.stack([pts[..., 0], self.camera_y_mm + pts[..., 2], self.aim_z_mm - pts[..., 1]], -1)
 
     def mm_per_px_at(self, plane_y_mm: float) -> float:
         return (plane_y_mm - self.camera_y_mm) / self.fx
@@ -236,34 +299,80 @@ class CameraModel:
         cy = (self.cy - render.y + 0.5) * s
         return self.fx * s, self.fy * s, cx, cy
 
+    # ------------------------------------------------------------ exposure
     def row_times(self, rows: np.ndarray) -> np.ndarray:
         """Exposure start of sensor rows relative to the frame start (rolling shutter)."""
         return np.asarray(rows, np.float64) * (self.cfg.rolling_shutter_s / self.height)
 
-    def exposure_samples(self, window: Window) -> tuple[np.ndarray, np.ndarray]:
-        """Sub-frame times (relative to frame start) and per-row weights (rows, samples).
+    def sampling(self, subframes: int) -> SubframeSampling:
+        """Sub-frames of a frame whose exposure is split into ``subframes`` bins."""
+        cfg = self.cfg
+        dt = cfg.exposure_s / subframes
+        last_start = float(self.row_times(self.height - 1))
+        n_bins = int(np.ceil((last_start + cfg.exposure_s) / dt - 1e-9))
+        return SubframeSampling(times=(np.arange(n_bins) + 0.5) * dt, bin_s=dt,
+                                exposure_s=cfg.exposure_s,
+                                row_period_s=cfg.rolling_shutter_s / self.height)
 
-        Samples sit on a global grid of step ``exposure / n``; every row
-        averages the ``n`` samples inside its own exposure window, so crops and
-        full frames weight the same rows identically.
-        """
-        n = self.cfg.motion_blur_subframes
-        dt = self.cfg.exposure_s / n
-        rows = np.arange(window.y, window.y + window.height)
-        start = self.row_times(rows)
-        first = np.ceil(start / dt - 0.5 - 1e-9).astype(np.int64)  # first k with (k+.5)dt >= start
-        k = np.arange(first.min(), first.max() + n)
-        times = (k + 0.5) * dt
-        weights = ((k[None, :] >= first[:, None]) & (k[None, :] < first[:, None] + n)) / n
-        return times, weights.astype(np.float32)
 
-    def sample_weights_for_rows(self, rows_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Sub-frame times (n per point) for points at (fractional) sensor rows."""
-        n = self.cfg.motion_blur_subframes
-        dt = self.cfg.exposure_s / n
-        start = self.row_times(np.rint(rows_px))
-        first = np.ceil(start / dt - 0.5 - 1e-9).astype(np.int64)
-        return (first[..., None] + np.arange(n) + 0.5) * dt, np.full(n, 1 / n)
+@dataclass(frozen=True)
+class SubframeSampling:
+    """Sub-frame times of one frame and each sensor row's weight on them.
+
+    Bin k spans ``[k, k + 1) * bin_s`` after the frame start and is rendered at
+    its centre ``times[k]``. A row exposes ``[start, start + exposure_s)`` with
+    ``start = row * row_period_s``; its weight on bin k is the overlap / exposure.
+    With a global shutter every row weighs ``n`` bins by ``1/n``; with a rolling
+    shutter a row's first and last bins get fractional weights, which makes its
+    exposure centroid exactly ``start + exposure_s / 2``.
+    """
+
+    times: np.ndarray
+    bin_s: float
+    exposure_s: float
+    row_period_s: float
+
+    @property
+    def global_shutter(self) -> bool:
+        return self.row_period_s == 0
+
+    def weights(self, rows: np.ndarray) -> np.ndarray:
+        """Weights (len(rows), K) of integer sensor ``rows``; each row sums to 1."""
+        start = np.asarray(rows, np.float64)[:, None] * self.row_period_s
+        lo = np.arange(self.times.size)[None, :] * self.bin_s
+        overlap = np.minimum(start + self.exposure_s, lo + self.bin_s) - np.maximum(start, lo)
+        w = np.clip(overlap, 0, None) / self.exposure_s
+        w[w < 1e-9] = 0.0  # rounding slivers would cost a render for nothing
+        return w
+
+
+class AutoExposure:
+    """A phone's auto-exposure loop: meter the scene, steer the gain towards
+    ``ae_target / meter`` with a first-order lag of ``ae_time_constant_s``.
+
+    :meth:`step` takes the meter of frame i (mean exposure-normalised
+    irradiance of the whole field of view at gain 1) and returns frame i's
+    gain, which was set from frames 0..i-1 (the phone exposes the next frame
+    from the last one it saw); frame 0 starts converged. With
+    ``auto_exposure: false`` the gain stays at frame 0's (exposure lock).
+    """
+
+    def __init__(self, cfg: CameraConfig):
+        self.cfg = cfg
+        self.alpha = 1 - np.exp(-1 / (cfg.fps * cfg.ae_time_constant_s))
+        self.gain: float | None = None
+
+    def target(self, meter: float) -> float:
+        return min(self.cfg.ae_target / max(meter, 1e-6), self.cfg.ae_max_gain)
+
+    def step(self, meter: float) -> float:
+        target = self.target(meter)
+        if self.gain is None:
+            self.gain = target
+        gain = self.gain
+        if self.cfg.auto_exposure:
+            self.gain = gain + self.alpha * (target - gain)
+        return gain
 
 
 @dataclass
@@ -289,7 +398,7 @@ _SRGB_TO_LINEAR16 = np.round(
 
 def srgb8_to_linear16(img: np.ndarray) -> np.ndarray:
     """pyrender writes sRGB-ish 8-bit colour; undo it to linear radiance (16 bit)."""
-    return _SRGB_TO_LINEAR16[img]
+    return cv2.LUT(np.ascontiguousarray(img), _SRGB_TO_LINEAR16)
 
 
 _GAUSS_BITS = 16
@@ -299,6 +408,7 @@ _ENCODE_LUTS: dict[float, np.ndarray] = {}
 
 
 def _gauss_table() -> np.ndarray:
+    """N(0, 1) quantiles at the centres of 2**16 equal-probability bins."""
     global _GAUSS_TABLE
     if _GAUSS_TABLE is None:
         from scipy.special import ndtri
@@ -314,69 +424,59 @@ def _encode_lut(gamma: float) -> np.ndarray:
     return _ENCODE_LUTS[gamma]
 
 
-def _splitmix64(z: np.ndarray) -> np.ndarray:
-    z = z + np.uint64(0x9E3779B97F4A7C15)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
-
-
-def standard_normal_at(seed: int, frame: int, window: Window, sensor_width: int,
-                       channels: int = 3) -> np.ndarray:
-    """Seeded N(0, 1) field indexed by global pixel: the same value for a pixel
-    in any crop (a counter-based generator, like Philox, but per element)."""
-    rows = np.arange(window.y, window.y + window.height, dtype=np.uint64)
-    cols = np.arange(window.x, window.x + window.width, dtype=np.uint64)
-    idx = (rows[:, None, None] * np.uint64(sensor_width) + cols[None, :, None]) * np.uint64(channels) \
-        + np.arange(channels, dtype=np.uint64)[None, None, :]
-    key = _splitmix64(np.array([(seed & 0xFFFFFFFF) << 32 | (frame & 0xFFFFFFFF)], np.uint64))
-    h = _splitmix64(idx ^ key)
-    return _gauss_table()[(h >> np.uint64(64 - _GAUSS_BITS)).astype(np.int64)]
-
-
 def sensor_readout(linear: np.ndarray, gain: float, cfg: CameraConfig, *, seed: int, frame: int,
                    window: Window) -> np.ndarray:
-    """Linear radiance (float32, 0..1 at gain 1) -> 8-bit gamma-encoded RGB.
+    """Exposure-normalised irradiance (float32, 1 = full well) -> 8-bit gamma-encoded RGB.
 
-    Photon noise (Gaussian approximation of Poisson, variance = electrons),
-    read noise, clipping at full well, gamma, 8-bit quantisation. The noise of
-    a pixel depends only on (seed, frame, global pixel, channel).
+    Per pixel and channel: ``e = full_well * linear`` electrons; shot noise
+    (Gaussian approximation of Poisson, variance ``e``) plus read noise
+    (variance ``read_noise_e**2``); the well clips at ``full_well``; the analog
+    gain (ISO) amplifies signal and noise alike; ``gain * e / full_well`` is
+    clipped to [0, 1], gamma-encoded and quantised to 8 bits. So at gain g the
+    output variance grows with its mean as ``g / full_well`` (photon transfer).
+    The noise of a pixel is a counter-based hash of (seed, frame, global pixel,
+    channel): the same in a crop as in the full frame.
     """
     linear = np.ascontiguousarray(linear, dtype=np.float32)
-    key = int(_splitmix64(np.array([(seed & 0xFFFFFFFF) << 32 | (frame & 0xFFFFFFFF)],
-                                   np.uint64))[0])
+    key = np.uint64(_splitmix64(np.uint64((seed & 0xFFFFFFFF) << 32 | (frame & 0xFFFFFFFF))))
     out = np.empty(linear.shape, np.uint8)
     _readout_kernel(linear, np.float32(gain), bool(cfg.noise), np.float32(cfg.full_well_e),
-                    np.float32(cfg.read_noise_e ** 2), np.uint64(key), window.y, window.x,
+                    np.float32(cfg.read_noise_e ** 2), key, window.y, window.x,
                     cfg.width_px, _gauss_table(), _encode_lut(cfg.gamma), out)
     return out
 
 
-def _make_kernel():
+def _make_kernels():
     import numba
 
-    @numba.njit(cache=True, parallel=False, fastmath=False)
+    @numba.njit(cache=True)
+    def splitmix64(z):
+        """SplitMix64 finaliser (Steele et al. 2014): a well-mixed 64-bit hash of ``z``."""
+        z = z + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        return z ^ (z >> np.uint64(31))
+
+    @numba.njit(cache=True, parallel=True, fastmath=False)
     def kernel(linear, gain, noise, full_well, read_var, key, y0, x0, sensor_width, gauss,
                lut, out):
         h, w, ch = linear.shape
         top = np.float32((1 << 20) - 1)
-        for r in range(h):
+        zero = np.float32(0)
+        for r in numba.prange(h):
             for c in range(w):
                 base = np.uint64((y0 + r) * sensor_width + (x0 + c)) * np.uint64(ch)
                 for k in range(ch):
-                    sig = linear[r, c, k] * gain
+                    electrons = max(linear[r, c, k], zero) * full_well
                     if noise:
-                        z = (base + np.uint64(k)) ^ key
-                        z = z + np.uint64(0x9E3779B97F4A7C15)
-                        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-                        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-                        z = z ^ (z >> np.uint64(31))
-                        e = max(sig, np.float32(0)) * full_well
-                        sigma = np.sqrt(e + read_var) / full_well
-                        sig = sig + sigma * gauss[np.int64(z >> np.uint64(48))]
-                    sig = min(max(sig, np.float32(0)), np.float32(1))
+                        z = splitmix64((base + np.uint64(k)) ^ key)
+                        sigma = np.sqrt(electrons + read_var)
+                        electrons = electrons + sigma * gauss[np.int64(z >> np.uint64(48))]
+                    electrons = min(max(electrons, zero), full_well)  # the well is full
+                    sig = min(max(gain * electrons / full_well, zero), np.float32(1))
                     out[r, c, k] = lut[np.int64(np.rint(sig * top))]
-    return kernel
+
+    return splitmix64, kernel
 
 
-_readout_kernel = _make_kernel()
+_splitmix64, _readout_kernel = _make_kernels()

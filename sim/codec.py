@@ -59,7 +59,27 @@ def ffmpeg_version() -> str:
     return out.stdout.splitlines()[0] if out.stdout else "unknown"
 
 
-class VideoWriter:
+class StreamWriter:
+    """An output written piece by piece: ``with`` it to ``close()`` on success and
+    ``abort()`` (leave nothing half-done) on an exception."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def abort(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+class VideoWriter(StreamWriter):
     """``with VideoWriter(path, w, h, fps, cfg) as vw: vw.write(rgb_uint8)``; constant memory."""
 
     def __init__(self, path: str | os.PathLike[str], width: int, height: int, fps: float,
@@ -109,15 +129,6 @@ class VideoWriter:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
-
-    def __enter__(self) -> VideoWriter:
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def read_video_frames(path: str | os.PathLike[str]):

@@ -1,16 +1,34 @@
 """Render the synthetic phone video, its ground truth and a calibration set.
 
 One :class:`BeamRenderer` per output window (the default crop around the
-measurement point, or the full sensor). A frame is the average of
-``camera.motion_blur_subframes`` undistorted pyrender renders within the
-exposure (per sensor row when the rolling shutter is on), remapped through the
-exact lens model, scaled by the auto-exposure gain, then noise, gamma and 8-bit
-quantisation (``sim.camera.sensor_readout``).
+measurement point, or the full sensor). A frame (:meth:`BeamRenderer.frame_linear`)
+averages undistorted pyrender renders at the sub-frames of its exposure with
+each sensor row's weights (:class:`sim.camera.SubframeSampling`), remaps them
+through the exact lens model and scales each row by the light's relative
+intensity over its exposure; :meth:`BeamRenderer.frame` adds the sensor
+(noise, the auto-exposure's analog gain, gamma, 8 bits; ``sim.camera``).
+
+Speed: while the camera stands still and the sheet is away only the beam and
+its logo move, so the window's background is rendered once and a sub-frame
+renders just the strip of columns the beam can reach during the clip, pasted
+over the background. Shake, drift and the sheet's frames render the whole
+window per sub-frame.
+
+Auto-exposure (:meth:`BeamRenderer.meter`): every frame is metered on a
+low-resolution pinhole render of the whole field of view at mid-exposure (the
+sheet, the beam, the camera's motion and the light included), so a crop and
+the full frame get the same gains; :class:`sim.camera.AutoExposure` turns the
+meters into gains with a phone-like lag.
+
+Ground truth (:meth:`BeamRenderer.truth_frame`) is averaged over the same
+sub-frames and row weights as the image, and a POI is occluded when the sheet
+covers it at one of the sub-frames its row exposes. It is the beam's motion
+relative to the ground, seen by the camera in its nominal pose; camera motion
+is reported separately (``cam_dx_px``, ``cam_dy_px``).
 """
 
 from __future__ import annotations
 
-import csv
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -19,22 +37,34 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sim.camera import CameraConfig, CameraModel, Window, sensor_readout, srgb8_to_linear16
+from sim.camera import (
+    AutoExposure,
+    CameraConfig,
+    CameraModel,
+    SubframeSampling,
+    Window,
+    sensor_readout,
+    srgb8_to_linear16,
+)
 from sim.codec import CodecConfig, VideoWriter, ffmpeg_version
-from sim.occlusion import A4_MM, OcclusionConfig, SheetPath
+from sim.disturbance import CameraMotion, Illumination
+from sim.occlusion import OcclusionConfig, SheetPath, exposure_gap_before
 from sim.scene import (
     BeamMesh,
     BeamShapes,
     SceneConfig,
     build_static_scene,
+    offscreen_renderer,
     pyrender,
     quad_primitive,
     release_renderer,
 )
+from sim.truth_io import CSV_COLUMNS, TruthWriter
 
 _FLAGS = pyrender.RenderFlags.FLAT  # baked lighting, see sim.scene.shading
 _AWAY = np.eye(4)
 _AWAY[:3, 3] = (0.0, -1e5, 0.0)  # behind the camera: culled
+_EDGE_MARGIN_PX = 4  # MSAA and texture filtering reach beyond an object's edge
 
 
 def _seed(config: dict[str, Any]) -> int:
@@ -45,7 +75,7 @@ def _seed(config: dict[str, Any]) -> int:
 
 
 class BeamRenderer:
-    """Renders frames of one sensor window; see the module docstring."""
+    """Renders frames and ground truth of one sensor window; see the module docstring."""
 
     def __init__(self, config: dict[str, Any], shapes: BeamShapes | None, *,
                  full_frame: bool = False, window: Window | None = None,
@@ -59,6 +89,8 @@ class BeamRenderer:
         sc, cc = self.scene_cfg, self.cam_cfg
         self.face_y_mm = -sc.beam_width_mm / 2
         self.camera = CameraModel(cc, camera_y_mm=self.face_y_mm - cc.distance_mm)
+        self.motion = CameraMotion(cc, self.seed)
+        self.light = Illumination(sc, self.seed)
         self.mm_per_px = self.camera.mm_per_px_at(self.face_y_mm)
         self.measure_point = np.array([0.0, self.face_y_mm, sc.measure_height_mm])
         self.measure_px = self.camera.project(self.measure_point)
@@ -71,8 +103,10 @@ class BeamRenderer:
         self.plan = self.camera.remap_plan(window)
         self.timings = {"remap_plan_s": time.perf_counter() - t0}
         self.mask = self._mask()
+        self._setup_pois()
+        self._samplings: dict[int, tuple[SubframeSampling, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._background: np.ndarray | None = None
         self._setup_scene()
-        self.sample_times, self.row_weights = self.camera.exposure_samples(window)
 
     # ------------------------------------------------------------ set-up
     def _mask(self) -> np.ndarray:
@@ -96,184 +130,258 @@ class BeamRenderer:
                              f"mm/px: raise camera.fx_px or lower camera.distance_mm")
         return mask
 
+    def _setup_pois(self) -> None:
+        """The POIs' global pixels, rays, material points and rest projections."""
+        vv, uu = np.nonzero(self.mask)
+        self.poi_window_px = np.stack([uu, vv], -1).astype(np.float32)
+        u, v = uu + float(self.window.x), vv + float(self.window.y)
+        self.poi_rows = vv + self.window.y
+        self.poi_rays = self.camera.pixel_rays(u, v)
+        rest = self.camera.rays_to_plane_y(*self.poi_rays, self.face_y_mm)
+        self.poi_a, self.poi_z0 = rest[:, 0], rest[:, 2]
+        self.poi_rest_px = self.camera.project(rest)
+
+    def _beam_reach(self) -> float:
+        """Largest |x| / depth (the tangent of the angle off the optical axis)
+        the beam's front face or its logo reach during the clip."""
+        sc, cam = self.scene_cfg, self.camera
+        swing, tilt = 0.0, 0.0
+        if self.shapes is not None:
+            swing = float(np.abs(self.shapes.x_mm).max())
+            tilt = float(np.abs(self.shapes.theta_rad).max())
+        spread = np.cos(tilt) + np.sin(tilt)  # a rotated half-width reaches this much further
+        reach = (swing + spread * sc.beam_thickness_mm / 2) / (self.face_y_mm - cam.camera_y_mm)
+        if sc.logo:
+            logo_depth = sc.beam_width_mm / 2 + 0.5 - cam.camera_y_mm
+            reach = max(reach, (swing + spread * sc.logo_size_mm / 2) / logo_depth)
+        return reach
+
+    def _distractor_layout(self) -> tuple[np.ndarray, np.ndarray]:
+        """Centres (world x, z) and kinds of the wall fixtures: inside the
+        measurement crop, clear of the beam and logo as the camera sees them."""
+        sc, cam, crop = self.scene_cfg, self.camera, self.crop_window
+        plane_y = sc.background_distance_mm - 1.0
+        u = np.array([crop.x, crop.x + crop.width - 1] * 2, np.float64)
+        v = np.array([crop.y] * 2 + [crop.y + crop.height - 1] * 2, np.float64)
+        corners = cam.backproject_to_plane_y(u, v, plane_y)
+        half = sc.distractor_size_mm / 2
+        x_lo, x_hi = max(corners[[0, 2], 0]) + half, min(corners[[1, 3], 0]) - half
+        z_lo, z_hi = max(corners[[2, 3], 2]) + half, min(corners[[0, 1], 2]) - half
+        keep_out = self._beam_reach() * (plane_y - cam.camera_y_mm) + half + 3.0
+        rng = np.random.default_rng([self.seed, 5])
+        centres: list[tuple[float, float]] = []
+        for _ in range(2000):  # rejection sampling; a crop too small simply holds fewer
+            if len(centres) == sc.distractor_count or x_hi <= x_lo or z_hi <= z_lo:
+                break
+            x, z = rng.uniform(x_lo, x_hi), rng.uniform(z_lo, z_hi)
+            if abs(x) >= keep_out and all(np.hypot(x - a, z - b) >= 1.6 * sc.distractor_size_mm
+                                          for a, b in centres):
+                centres.append((x, z))
+        return np.array(centres, np.float64).reshape(-1, 2), np.arange(len(centres)) % 4
+
     def _setup_scene(self) -> None:
         sc, cam = self.scene_cfg, self.camera
+        self.distractors = self._distractor_layout() if sc.distractors else None
         self.scene, mats = build_static_scene(sc, camera_y_mm=cam.camera_y_mm,
-                                              aim_z_mm=cam.aim_z_mm, seed=self.seed)
+                                              aim_z_mm=cam.aim_z_mm, seed=self.seed,
+                                              distractors=self.distractors)
         # by default the logo is centred on the measurement point's line of sight
         logo_y = sc.beam_width_mm / 2 + 0.5
         logo_z = sc.logo_height_mm or (cam.aim_z_mm + (sc.measure_height_mm - cam.aim_z_mm)
                                        * (logo_y - cam.camera_y_mm) / (self.face_y_mm - cam.camera_y_mm))
         self.beam = BeamMesh(sc, mats["paint"], mats["logo"], logo_height_mm=logo_z)
         self.beam_node = self.scene.add(self.beam.mesh(self.shapes, 0.0), name="beam")
-        # the sheet: a quad centred at its node origin in the x-z plane, facing the camera
-        hw, hh = A4_MM[0] / 2, A4_MM[1] / 2
-        corners = np.array([[-hw, 0, -hh], [hw, 0, -hh], [hw, 0, hh], [-hw, 0, hh]])
-        self.sheet_node = self.scene.add(pyrender.Mesh([quad_primitive(corners, mats["paper"])]),
-                                         name="sheet", pose=_AWAY)
-        self.sheet_plane_y = cam.camera_y_mm + self.occ_cfg.distance_mm
-        self._setup_sheet_path()
-        s = self.cam_cfg.supersample
-        r = self.plan.render
-        fx, fy, cx, cy = cam.render_intrinsics(r, s)
-        self.cam_node = self.scene.add(
-            pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=20.0, zfar=20000.0), pose=cam.pose())
-        self.renderer = pyrender.OffscreenRenderer(r.width * s, r.height * s)
-        self._meter()
+        self._setup_sheet()
+        self.sheet_node = self.scene.add(
+            pyrender.Mesh([quad_primitive(self.sheet.quad_corners(), mats["paper"])]),
+            name="sheet", pose=_AWAY)
+        self.gl_camera = pyrender.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=20.0, zfar=20000.0)
+        self.cam_node = self.scene.add(self.gl_camera, pose=cam.pose())
+        s, r = self.cam_cfg.supersample, self.plan.render
+        self.renderer = offscreen_renderer(r.width * s, r.height * s)
+        self.strip = self._dynamic_strip()
 
-    def _plane_coords(self, u, v, depth):
-        """Travel-axis coordinate on a plane ``depth`` mm in front of the lens."""
-        x, y = self.camera.pixel_rays(u, v)
-        axis = 0 if self.occ_cfg.direction in ("+x", "-x") else 1
-        return x * depth if axis == 0 else self.camera.aim_z_mm - y * depth
+    def sheet_coords(self, rays: tuple[np.ndarray, np.ndarray], t_cam: float | None = None):
+        """Coordinates (along, across the sheet's path) on the sheet's plane of
+        normalised rays ``(x, y)`` of the camera as it stands at ``t_cam``."""
+        motion = None if t_cam is None else self.motion.at(t_cam)
+        pts = self.camera.rays_to_plane_y(*rays, self.sheet_plane_y, motion)
+        along = 0 if self.occ_cfg.direction in ("+x", "-x") else 2
+        return pts[..., along], pts[..., 2 - along]
 
-    def _setup_sheet_path(self) -> None:
-        d = self.occ_cfg.distance_mm
-        crop = self.crop_window
-        vv, uu = np.nonzero(self._mask_crop())
-        uu, vv = uu + crop.x, vv + crop.y
-        s_mask = self._plane_coords(uu, vv, d)
-        s_point = float(self._plane_coords(*self.measure_px, d))
-        cam = self.camera
-        corners_u = np.array([0, cam.width - 1, 0, cam.width - 1], float)
-        corners_v = np.array([0, 0, cam.height - 1, cam.height - 1], float)
-        s_fov = self._plane_coords(corners_u, corners_v, d)
-        self.fov_s = (float(s_fov.min()), float(s_fov.max()))
-        axis = 0 if self.occ_cfg.direction in ("+x", "-x") else 1
-        across = (cam.aim_z_mm - float(cam.pixel_rays(*self.measure_px)[1]) * d if axis == 0
-                  else float(cam.pixel_rays(*self.measure_px)[0]) * d)
-        self.sheet = SheetPath(self.occ_cfg, region_s=(float(s_mask.min()), float(s_mask.max())),
-                               point_s=s_point, fov_s=self.fov_s, across_center=across)
-        self._poi_sheet_s = None
+    def _setup_sheet(self) -> None:
+        cam, occ, cc = self.camera, self.occ_cfg, self.cam_cfg
+        self.sheet_plane_y = cam.camera_y_mm + occ.distance_mm
+        s_mask, _ = self.sheet_coords(self.poi_rays)
+        corners = cam.pixel_rays(np.array([0, cam.width - 1, 0, cam.width - 1], float),
+                                 np.array([0, 0, cam.height - 1, cam.height - 1], float))
+        s_fov, _ = self.sheet_coords(corners)
+        measure_ray = cam.pixel_rays(*self.measure_px)
+        _, across = self.sheet_coords(measure_ray)
+        rows = (float(cam.row_times(self.poi_rows.min())), float(cam.row_times(self.poi_rows.max())))
+        gaps = tuple(exposure_gap_before(t, cc.fps, cc.exposure_s, rows)
+                     for t in (occ.start_s, occ.start_s + occ.duration_s))
+        focal = cam.fx if occ.direction in ("+x", "-x") else cam.fy
+        self.sheet = SheetPath(occ, mask_s=s_mask, fov_s=(float(s_fov.min()), float(s_fov.max())),
+                               across_center=float(across), gaps_s=gaps,
+                               pixel_mm=occ.distance_mm / focal)
 
-    def _mask_crop(self) -> np.ndarray:
-        if self.window == self.crop_window:
-            return self.mask
-        c, w = self.crop_window, self.window
-        return self.mask[c.y - w.y:c.y - w.y + c.height, c.x - w.x:c.x - w.x + c.width]
+    def _dynamic_strip(self) -> tuple[int, int] | None:
+        """Columns [c0, c1) of the render window the beam and logo can reach
+        during the clip (beam at world x = 0, i.e. around column cx); None when
+        that is most of the window (then render it whole)."""
+        cam, r = self.camera, self.plan.render
+        half = cam.fx * self._beam_reach() + _EDGE_MARGIN_PX
+        c0 = int(max(0, np.floor(cam.cx - half) - r.x))
+        c1 = int(min(r.width, np.ceil(cam.cx + half) + 1 - r.x))
+        if c1 <= c0:
+            return (0, 0)  # the beam never enters this window
+        return None if 2 * (c1 - c0) > r.width else (c0, c1)
 
-    def _sheet_pose(self, t_cam: float) -> np.ndarray:
-        ext = self.sheet.extent(t_cam)
-        if ext is None:
-            return _AWAY
-        centre = 0.5 * (ext[0] + ext[1])
-        pose = np.eye(4)
-        if self.sheet.axis == 0:
-            pose[:3, 3] = (centre, self.sheet_plane_y, self.sheet.across_center)
-        else:
-            pose[:3, :3] = [[0, 0, -1], [0, 1, 0], [1, 0, 0]]  # landscape when moving vertically
-            pose[:3, :3] = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0]]).T
-            pose[:3, 3] = (self.sheet.across_center, self.sheet_plane_y, centre)
-        return pose
+    # ------------------------------------------------------------ sub-frames
+    def sampling(self, index: int) -> SubframeSampling:
+        """The sub-frames of frame ``index``: ``camera.motion_blur_subframes`` bins
+        per exposure, ``occlusion.motion_blur_subframes`` while the sheet moves
+        (its edge sweeps ~100 px per exposure at 4K). The choice depends on the
+        whole sensor's read-out, never on the window."""
+        return self._sampling_entry(index)[0]
 
-    def _meter(self) -> None:
-        """Scene brightness for auto-exposure: metered once without and once
-        behind the sheet (a low-resolution pinhole view of the whole sensor);
-        per frame the meter mixes them by the sensor fraction the sheet covers,
-        so the exposure never depends on which window is rendered."""
-        cam, cc = self.camera, self.cam_cfg
-        scale = cc.ae_metering_width_px / cam.width
-        mw, mh = cc.ae_metering_width_px, max(2, int(round(cam.height * scale)))
-        meter_cam = pyrender.IntrinsicsCamera(cam.fx * scale, cam.fy * scale,
-                                              (cam.cx + 0.5) * scale, (cam.cy + 0.5) * scale,
-                                              znear=20.0, zfar=20000.0)
-        node = self.scene.add(meter_cam, pose=cam.pose())
-        self.scene.main_camera_node = node
-        r = self.renderer
-        size = (r.viewport_width, r.viewport_height)
-        r.viewport_width, r.viewport_height = mw, mh
-        try:
-            clear = r.render(self.scene, flags=_FLAGS)[0]
-            pose = np.eye(4)
-            pose[:3, 3] = (0.0, cam.camera_y_mm + 60.0, cam.aim_z_mm)  # fills the view
-            self.scene.set_pose(self.sheet_node, pose)
-            covered = r.render(self.scene, flags=_FLAGS)[0]
-        finally:
-            r.viewport_width, r.viewport_height = size
-            self.scene.set_pose(self.sheet_node, _AWAY)
-            self.scene.main_camera_node = self.cam_node
-            self.scene.remove_node(node)
-        self.meter_clear = float(srgb8_to_linear16(clear).mean() / 65535)
-        self.meter_sheet = float(srgb8_to_linear16(covered).mean() / 65535)
-
-    def covered_fraction(self, t_cam: float) -> float:
-        ext = self.sheet.extent(t_cam)
-        if ext is None:
-            return 0.0
-        lo, hi = self.fov_s
-        return float(max(0.0, min(hi, ext[1]) - max(lo, ext[0])) / (hi - lo))
-
-    def gains(self, n_frames: int) -> np.ndarray:
-        """Auto-exposure gain per frame: first-order lag towards target/meter."""
+    def _sampling_entry(self, index: int):
         cc = self.cam_cfg
-        gain0 = min(cc.ae_target / max(self.meter_clear, 1e-6), cc.ae_max_gain)
-        out = np.empty(n_frames)
-        g = gain0
-        alpha = 1 - np.exp(-1 / (cc.fps * cc.ae_time_constant_s))
-        for i in range(n_frames):
-            if cc.auto_exposure:
-                f = self.covered_fraction(i / cc.fps + 0.5 * cc.exposure_s)
-                meter = (1 - f) * self.meter_clear + f * self.meter_sheet
-                target = min(cc.ae_target / max(meter, 1e-6), cc.ae_max_gain)
-                g = g + alpha * (target - g) if i else gain0
-            out[i] = g
-        return out
+        t = index / cc.fps
+        span = float(self.camera.row_times(self.camera.height - 1)) + cc.exposure_s
+        n = cc.motion_blur_subframes
+        if self.sheet.moves_during(t, t + span):
+            n = max(n, self.occ_cfg.motion_blur_subframes)
+        if n not in self._samplings:
+            smp = self.camera.sampling(n)
+            rows = np.arange(self.window.y, self.window.y + self.window.height)
+            self._samplings[n] = (smp, smp.weights(rows).astype(np.float32),
+                                  smp.weights(self.poi_rows),
+                                  smp.weights(np.rint(self.measure_px[1:]))[0])
+        return self._samplings[n]
 
-    # ------------------------------------------------------------ frames
-    def render_undistorted(self, t_cam: float) -> np.ndarray:
-        """Linear 16-bit undistorted render (the plan's render window) at ``t_cam``."""
-        t_sim = t_cam + self.cam_cfg.start_offset_s
+    # ------------------------------------------------------------ rendering
+    def _render_view(self, t_cam: float, intrinsics: tuple[float, ...], size: tuple[int, int],
+                     *, with_sheet: bool = True) -> np.ndarray:
+        """sRGB8 pyrender image of the scene at camera time ``t_cam``."""
         self.scene.remove_node(self.beam_node)
-        self.beam_node = self.scene.add(self.beam.mesh(self.shapes, t_sim), name="beam")
-        self.scene.set_pose(self.sheet_node, self._sheet_pose(t_cam))
-        color = self.renderer.render(self.scene, flags=_FLAGS)[0]
+        self.beam_node = self.scene.add(
+            self.beam.mesh(self.shapes, t_cam + self.cam_cfg.start_offset_s), name="beam")
+        pose = self.sheet.pose(t_cam, self.sheet_plane_y) if with_sheet else None
+        self.scene.set_pose(self.sheet_node, _AWAY if pose is None else pose)
+        self.scene.set_pose(self.cam_node, self.camera.pose(self.motion.at(t_cam)))
+        g = self.gl_camera
+        g.fx, g.fy, g.cx, g.cy = intrinsics
+        self.renderer.viewport_width, self.renderer.viewport_height = size
+        return self.renderer.render(self.scene, flags=_FLAGS)[0]
+
+    def _render_window(self, win: Window, t_cam: float, *, with_sheet: bool = True) -> np.ndarray:
+        """Linear 16-bit undistorted render of window ``win`` (render coordinates)."""
         s = self.cam_cfg.supersample
+        color = self._render_view(t_cam, self.camera.render_intrinsics(win, s),
+                                  (win.width * s, win.height * s), with_sheet=with_sheet)
         lin = srgb8_to_linear16(color)
         if s > 1:
-            lin = cv2.resize(lin.astype(np.float32), (self.plan.render.width, self.plan.render.height),
+            lin = cv2.resize(lin.astype(np.float32), (win.width, win.height),
                              interpolation=cv2.INTER_AREA)
             lin = np.rint(lin).astype(np.uint16)
         return lin
 
-    def render_linear(self, t_cam: float) -> np.ndarray:
-        """Linear radiance (float32, H x W x 3) of the window at camera time ``t_cam``."""
-        return self.plan.apply(self.render_undistorted(t_cam)).astype(np.float32) * np.float32(1 / 65535)
+    def render_undistorted(self, t_cam: float) -> np.ndarray:
+        """Linear 16-bit undistorted render of the whole plan window at ``t_cam``."""
+        return self._render_window(self.plan.render, t_cam)
 
-    def _sheet_moving(self, t_frame: float) -> bool:
-        ends = [self.sheet.extent(t_frame + dt) for dt in (0.0, self.cam_cfg.exposure_s)]
-        return any(e is not None for e in ends) and ends[0] != ends[1]
+    def _whole_window(self, t_frame: float, smp: SubframeSampling) -> bool:
+        """Render whole windows (not background + strip) for this frame?"""
+        end = t_frame + smp.times.size * smp.bin_s
+        return (self.strip is None or self.motion.active
+                or self.sheet.present_during(t_frame, end))
+
+    def _composite(self) -> np.ndarray:
+        """Persistent undistorted buffer: the static background (rendered once,
+        sheet away, camera still) whose strip columns each sub-frame overwrites."""
+        if self._background is None:
+            self._background = self._render_window(self.plan.render, 0.0, with_sheet=False)
+        return self._background
+
+    def _strip_window(self) -> Window:
+        r, (c0, c1) = self.plan.render, self.strip
+        return Window(r.x + c0, r.y, c1 - c0, r.height)
+
+    def _undistorted(self, whole: bool, render) -> np.ndarray:
+        """The undistorted window: ``render(window)`` of the whole window, or of
+        the beam's strip pasted over the background."""
+        if whole:
+            return render(self.plan.render)
+        buf = self._composite()
+        c0, c1 = self.strip
+        if c1 > c0:
+            buf[:, c0:c1] = render(self._strip_window())
+        return buf
+
+    def _averaged(self, win: Window, times: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        acc = None
+        for t, w in zip(times, weights, strict=True):
+            img = self._render_window(win, t).astype(np.float32) * np.float32(w)
+            acc = img if acc is None else cv2.add(acc, img)
+        return np.rint(np.clip(acc, 0, 65535)).astype(np.uint16)
 
     def frame_linear(self, index: int) -> np.ndarray:
-        t_frame = index / self.cam_cfg.fps
-        if self.cam_cfg.rolling_shutter_s == 0:
-            # global shutter: every row sees the same sub-frames, so average the
-            # undistorted renders first and remap once (remap is linear)
-            times = self.sample_times
-            if self._sheet_moving(t_frame):
-                # the sheet sweeps ~100 px within an exposure: sample it finely
-                # so its blur is smooth rather than a few ghosts
-                m = max(len(times), 16)
-                times = (np.arange(m) + 0.5) / m * self.cam_cfg.exposure_s
-            acc = None
-            for dt in times:
-                img = self.render_undistorted(t_frame + dt).astype(np.uint32)
-                acc = img if acc is None else acc + img
-            n = len(times)
-            mean = ((acc + n // 2) // n).astype(np.uint16)
-            return self.plan.apply(mean).astype(np.float32) * np.float32(1 / 65535)
-        acc = None
-        for k, dt in enumerate(self.sample_times):
-            w = self.row_weights[:, k]
-            if not np.any(w):
-                continue
-            img = self.render_linear(t_frame + dt) * w[:, None, None]
-            acc = img if acc is None else acc + img
-        return acc
+        """Irradiance (float32, H x W x 3, 1 = full well at gain 1) of frame ``index``."""
+        cc = self.cam_cfg
+        t_frame = index / cc.fps
+        smp, weights, _, _ = self._sampling_entry(index)
+        active = np.flatnonzero(weights.max(0) > 0)
+        times = t_frame + smp.times[active]
+        whole = self._whole_window(t_frame, smp)
+        scale = np.float32(1 / 65535)
+        if smp.global_shutter:
+            # every row sees the same sub-frames: average the undistorted renders,
+            # then remap once (remap is linear)
+            und = self._undistorted(whole, lambda win: self._averaged(win, times,
+                                                                      weights[0, active]))
+            out = self.plan.apply(und).astype(np.float32) * scale
+        else:
+            out = np.zeros((self.window.height, self.window.width, 3), np.float32)
+            for k, t in zip(active, times, strict=True):
+                und = self._undistorted(whole, lambda win, t=t: self._render_window(win, t))
+                out += self.plan.apply(und).astype(np.float32) * (weights[:, k] * scale)[:, None, None]
+        if self.light.active:
+            out *= self.light_rows(index)[:, None, None]
+        return out
+
+    def light_rows(self, index: int) -> np.ndarray:
+        """Relative light intensity (float32) over each window row's exposure."""
+        cc = self.cam_cfg
+        start = index / cc.fps + self.camera.row_times(
+            np.arange(self.window.y, self.window.y + self.window.height))
+        return self.light.mean(start, start + cc.exposure_s).astype(np.float32)
 
     def frame(self, index: int, gain: float) -> np.ndarray:
-        """8-bit RGB frame ``index`` of the window."""
+        """8-bit RGB frame ``index`` of the window at analog gain ``gain``."""
         return sensor_readout(self.frame_linear(index), gain, self.cam_cfg, seed=self.seed,
                               frame=index, window=self.window)
+
+    # ------------------------------------------------------------ exposure
+    def meter(self, index: int) -> float:
+        """What the phone's exposure meter reads for frame ``index``: the mean
+        irradiance (gain 1) of a low-resolution pinhole render of the whole
+        field of view at the middle row's mid-exposure, times the light there.
+        Independent of the rendered window."""
+        cam, cc = self.camera, self.cam_cfg
+        t = index / cc.fps + float(cam.row_times(cam.height // 2)) + 0.5 * cc.exposure_s
+        scale = cc.ae_metering_width_px / cam.width
+        size = (cc.ae_metering_width_px, max(2, int(round(cam.height * scale))))
+        color = self._render_view(t, (cam.fx * scale, cam.fy * scale, (cam.cx + 0.5) * scale,
+                                      (cam.cy + 0.5) * scale), size)
+        light = float(self.light.mean(t - 0.5 * cc.exposure_s, t + 0.5 * cc.exposure_s))
+        return float(srgb8_to_linear16(color).mean()) / 65535 * light
+
+    def gains(self, n_frames: int) -> np.ndarray:
+        """Auto-exposure gains of frames 0..n_frames-1 (see :class:`sim.camera.AutoExposure`)."""
+        ae = AutoExposure(self.cam_cfg)
+        return np.array([ae.step(self.meter(i)) for i in range(n_frames)])
 
     def close(self) -> None:
         release_renderer(self.renderer)
@@ -284,105 +392,108 @@ class BeamRenderer:
         duration = float(self.config.get("duration_s", 10.0) if duration_s is None else duration_s)
         n = int(np.floor(duration * cc.fps + 1e-9))
         if self.shapes is not None:
-            span = self.shapes.time_s[-1] - cc.start_offset_s - self.sample_times.max()
-            n = min(n, int(np.floor(span * cc.fps + 1e-9)) + 1)
+            span = float(self.camera.row_times(self.camera.height - 1)) + cc.exposure_s
+            last = self.shapes.time_s[-1] - cc.start_offset_s - span
+            n = min(n, int(np.floor(last * cc.fps + 1e-9)) + 1)
         if n < 1:
             raise ValueError(f"no frame fits: duration_s={duration} and shapes up to "
                              f"{self.shapes.time_s[-1] if self.shapes else 0} s")
         return n
 
-    def _material_points(self, u: np.ndarray, v: np.ndarray):
-        rest = self.camera.backproject_to_plane_y(u, v, self.face_y_mm)
-        return rest[..., 0], rest[..., 2]
+    def _beam_points(self, t_cam: float) -> tuple[np.ndarray, np.ndarray]:
+        """World positions of the measurement point (3,) and the POIs' material points (P, 3)."""
+        t_sim = t_cam + self.cam_cfg.start_offset_s
+        a = np.concatenate([[0.0], self.poi_a])
+        z0 = np.concatenate([[self.measure_point[2]], self.poi_z0])
+        if self.shapes is None:
+            pts = np.stack([a, np.full_like(a, self.face_y_mm), z0], -1)
+        else:
+            pts = self.shapes.material_to_world(t_sim, a, self.face_y_mm, z0)
+        return pts[0], pts[1:]
 
-    def point_truth(self, frames: np.ndarray, a: np.ndarray, z0: np.ndarray, rows_px: np.ndarray):
-        """Exposure-averaged distorted pixel position (F, P, 2) and world position
-        (F, P, 3) of material points (a across the thickness, z0 height) on the face."""
-        times, _ = self.camera.sample_weights_for_rows(rows_px)   # (P, n)
-        F, P = len(frames), a.size
-        pix = np.zeros((F, P, 2))
-        world = np.zeros((F, P, 3))
-        groups = {}
-        for p in range(P):
-            groups.setdefault(tuple(np.round(times[p] * 1e9).astype(np.int64)), []).append(p)
-        for key, members in groups.items():
-            members = np.array(members)
-            offs = np.array(key) * 1e-9
-            for fi, f in enumerate(frames):
-                for dt in offs:
-                    t_sim = f / self.cam_cfg.fps + dt + self.cam_cfg.start_offset_s
-                    pts = self.shapes.material_to_world(t_sim, a[members], self.face_y_mm,
-                                                        z0[members])
-                    world[fi, members] += pts / len(offs)
-                    pix[fi, members] += self.camera.project(pts) / len(offs)
-        return pix, world
-
-    def occluded(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per frame: any mask pixel behind the sheet during the exposure, and the
-        mean covered fraction of the mask pixels."""
-        crop = self.crop_window
-        vv, uu = np.nonzero(self._mask_crop())
-        s_mask = self._plane_coords(uu + crop.x, vv + crop.y, self.occ_cfg.distance_mm)
-        flag = np.zeros(len(frames), np.int64)
-        frac = np.zeros(len(frames))
-        dts = np.unique(self.sample_times)
-        for i, f in enumerate(frames):
-            cov = np.zeros(s_mask.shape, bool)
-            for dt in dts:
-                cov |= self.sheet.covers(f / self.cam_cfg.fps + dt, s_mask)
-            flag[i] = int(cov.any())
-            frac[i] = cov.mean()
-        return flag, frac
-
-    def truth(self, n_frames: int) -> dict[str, np.ndarray]:
-        frames = np.arange(n_frames)
-        sc = self.scene_cfg
-        rest = self.measure_px
-        a, z0 = np.array([0.0]), np.array([sc.measure_height_mm])
-        pix, world = self.point_truth(frames, a, z0, np.array([rest[1]]))
-        flag, frac = self.occluded(frames)
-        w = self.window
-        vv, uu = np.nonzero(self.mask)
-        pa, pz = self._material_points(uu + w.x, vv + w.y)
-        ppix, _ = self.point_truth(frames, pa, pz, (vv + w.y).astype(float))
-        rest_p = self.camera.project(np.stack([pa, np.full_like(pa, self.face_y_mm), pz], -1))
+    def truth_frame(self, index: int) -> dict[str, Any]:
+        """Ground truth of frame ``index`` (see ``sim.truth_io`` for the columns),
+        averaged over the image's own sub-frames and row weights."""
+        cc, cam = self.cam_cfg, self.camera
+        t_frame = index / cc.fps
+        smp, _, w_poi, w_measure = self._sampling_entry(index)
+        n_poi = self.poi_a.size
+        world, pix, cam_shift = np.zeros(3), np.zeros(2), np.zeros(2)
+        poi_pix, covered = np.zeros((n_poi, 2)), np.zeros(n_poi, bool)
+        for k in np.flatnonzero((w_measure > 0) | (w_poi > 0).any(0)):
+            t = t_frame + smp.times[k]
+            m_world, p_world = self._beam_points(t)
+            world += w_measure[k] * m_world
+            pix += w_measure[k] * cam.project(m_world)
+            poi_pix += w_poi[:, k, None] * cam.project(p_world)
+            motion = self.motion.at(t)
+            if motion is not None:
+                cam_shift += w_measure[k] * (cam.project(self.measure_point, motion)
+                                             - self.measure_px)
+            if self.sheet.extent(t) is not None:
+                on_sheet = self.sheet.covers(t, *self.sheet_coords(self.poi_rays, t))
+                covered |= (w_poi[:, k] > 0) & on_sheet
+        start = t_frame + float(cam.row_times(np.rint(self.measure_px[1])))
+        poi_shift = poi_pix - self.poi_rest_px
         return {
-            "frame": frames, "time_s": frames / self.cam_cfg.fps,
-            "dx_px": pix[:, 0, 0] - rest[0], "dy_px": pix[:, 0, 1] - rest[1],
-            "dx_mm": world[:, 0, 0] - self.measure_point[0],
-            "dy_mm": -(world[:, 0, 2] - self.measure_point[2]),
-            "occluded": flag, "occluded_frac": frac,
-            "poi_dx_px": (ppix[..., 0] - rest_p[None, :, 0]).astype(np.float32),
-            "poi_dy_px": (ppix[..., 1] - rest_p[None, :, 1]).astype(np.float32),
-            "poi_x_px": uu.astype(np.float32), "poi_y_px": vv.astype(np.float32),
+            "frame": index, "time_s": t_frame,
+            "dx_px": pix[0] - self.measure_px[0], "dy_px": pix[1] - self.measure_px[1],
+            "dx_mm": world[0] - self.measure_point[0], "dy_mm": -(world[2] - self.measure_point[2]),
+            "occluded": int(covered.any()), "occluded_frac": float(covered.mean()) if n_poi else 0.0,
+            "cam_dx_px": cam_shift[0], "cam_dy_px": cam_shift[1],
+            "light_rel": float(self.light.mean(start, start + cc.exposure_s)),
+            "poi_dx_px": poi_shift[:, 0].astype(np.float32),
+            "poi_dy_px": poi_shift[:, 1].astype(np.float32),
+            "poi_covered": covered,
         }
 
+    def truth(self, n_frames: int) -> dict[str, np.ndarray]:
+        """Truth of frames 0..n_frames-1 stacked in memory (short clips and tests;
+        :func:`render_clip` streams it frame by frame instead)."""
+        rows = [self.truth_frame(i) for i in range(n_frames)]
+        out = {key: np.array([row[key] for row in rows]) for key in rows[0]}
+        out["poi_x_px"], out["poi_y_px"] = self.poi_window_px[:, 0], self.poi_window_px[:, 1]
+        return out
+
     def metadata(self) -> dict[str, Any]:
-        cam = self.camera
+        cam, cc = self.camera, self.cam_cfg
         return {
-            "mm_per_px": self.mm_per_px, "fps": self.cam_cfg.fps, "crop": self.window.as_dict(),
+            "mm_per_px": self.mm_per_px, "fps": cc.fps, "crop": self.window.as_dict(),
             "sensor": {"width": cam.width, "height": cam.height},
             "intrinsics": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                            "K": cam.K.tolist()},
             "distortion": {"k1": cam.k1, "k2": cam.k2, "p1": cam.p1, "p2": cam.p2,
                            "model": "Brown-Conrady, OpenCV order (k1, k2, p1, p2, k3=0)"},
-            "camera_start_offset_s": self.cam_cfg.start_offset_s,
+            "camera_start_offset_s": cc.start_offset_s,
             "camera_position_mm": [0.0, cam.camera_y_mm, cam.aim_z_mm],
             "camera_looks_along": "+y (world x = image right, world z = image up)",
             "measurement_point_mm": self.measure_point.tolist(),
             "measurement_point_px": self.measure_px.tolist(),
-            "exposure_s": self.cam_cfg.exposure_s,
-            "rolling_shutter_s": self.cam_cfg.rolling_shutter_s,
-            "sample_times_s": self.sample_times.tolist(),
-            "truth_convention": ("truth.csv: displacement from the rest (undeformed) position of "
-                                 "the measurement point on the beam's front face, averaged over "
-                                 "the exposure sub-frames of its sensor row; dx_mm/dy_mm are "
-                                 "world displacements (dx_mm along world x, dy_mm along -z, "
-                                 "i.e. image-down sign); time_s = frame/fps on the camera clock "
-                                 "(sim time = time_s + camera_start_offset_s); occluded = 1 when "
-                                 "any mask pixel is behind the sheet during the exposure"),
-            "meter": {"clear": self.meter_clear, "sheet": self.meter_sheet},
-            "config": {"camera": asdict(self.cam_cfg), "scene": asdict(self.scene_cfg),
+            "exposure_s": cc.exposure_s,
+            "rolling_shutter_s": cc.rolling_shutter_s,
+            "subframes": {"camera": cc.motion_blur_subframes,
+                          "sheet_moving": self.occ_cfg.motion_blur_subframes,
+                          "rule": "bins of exposure/n on a grid shared by all rows, rendered at "
+                                  "their centres; a row weighs each bin by its exposure overlap"},
+            "truth_columns": list(CSV_COLUMNS),
+            "truth_convention": (
+                "truth.csv: displacement of the measurement point on the beam's front face from "
+                "its rest (undeformed) position, relative to the ground and seen by the camera in "
+                "its nominal pose, averaged over the image's sub-frames with its sensor row's "
+                "weights; dx_mm/dy_mm are world displacements (dx_mm along world x, dy_mm along "
+                "-z, i.e. image-down sign); time_s = frame/fps on the camera clock (sim time = "
+                "time_s + camera_start_offset_s); occluded = 1 when the sheet covers any mask "
+                "pixel at a sub-frame its row exposes, occluded_frac = fraction of mask pixels "
+                "covered so; cam_dx_px/cam_dy_px = apparent image shift of a static point at the "
+                "measurement point's rest position caused by camera shake and drift (what the "
+                "image shows is about dx_px + cam_dx_px); light_rel = relative light over the "
+                "measurement row's exposure; gain = auto-exposure analog gain"),
+            "disturbances": {"camera_shake": cc.shake, "camera_drift": cc.drift,
+                             "flicker": self.scene_cfg.flicker, "clouds": self.scene_cfg.clouds,
+                             "light_drift": self.scene_cfg.light_drift},
+            "distractors_mm": ([] if self.distractors is None
+                               else self.distractors[0].tolist()),
+            "config": {"camera": asdict(cc), "scene": asdict(self.scene_cfg),
                        "occlusion": asdict(self.occ_cfg)},
         }
 
@@ -391,8 +502,12 @@ class BeamRenderer:
 def render_clip(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path, *,
                 full_frame: bool = False, max_frames: int | None = None,
                 progress: bool = True) -> dict[str, Any]:
-    """Render the video and its ground truth into ``out_dir`` (see docs/formats.md)."""
-    from refflow.io import atomic_path, config_hash, versions, write_json
+    """Render the video and its ground truth into ``out_dir`` (see docs/formats.md).
+
+    Frames go straight to the encoder and the truth to its files frame by
+    frame (``sim.truth_io``): memory does not grow with the clip's length.
+    """
+    from refflow.io import atomic_paths, config_hash, versions, write_json
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     codec = CodecConfig.from_config(config)
@@ -402,49 +517,44 @@ def render_clip(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path,
         n = r.n_frames()
         if max_frames is not None:
             n = min(n, int(max_frames))
-        gains = r.gains(n)
         w = r.window
-        t0 = time.perf_counter()
-        truth = r.truth(n)
-        t_truth = time.perf_counter() - t0
         video = out_dir / f"video{codec.suffix}"
+        ae = AutoExposure(r.cam_cfg)
+        spent = {"meter_s": 0.0, "truth_s": 0.0}
         frame_times = []
-        with atomic_path(video) as tmp:
-            with VideoWriter(tmp, w.width, w.height, r.cam_cfg.fps, codec) as writer:
+        outputs = (video, out_dir / "mask.png", out_dir / "poi_truth.npz", out_dir / "truth.csv")
+        with atomic_paths(*outputs) as (tmp_video, tmp_mask, tmp_npz, tmp_csv):
+            with VideoWriter(tmp_video, w.width, w.height, r.cam_cfg.fps, codec) as writer, \
+                    TruthWriter(tmp_csv, tmp_npz, poi_x_px=r.poi_window_px[:, 0],
+                                poi_y_px=r.poi_window_px[:, 1]) as truth_out:
                 it = range(n)
                 if progress:
                     from tqdm import tqdm
                     it = tqdm(it, desc=f"render {w.width}x{w.height}", unit="frame")
                 for i in it:
+                    t0 = time.perf_counter()
+                    gain = ae.step(r.meter(i))
                     t1 = time.perf_counter()
-                    writer.write(r.frame(i, gains[i]))
-                    frame_times.append(time.perf_counter() - t1)
-        with atomic_path(out_dir / "mask.png") as tmp:
-            cv2.imwrite(str(tmp), r.mask)
-        with atomic_path(out_dir / "truth.csv") as tmp:
-            with tmp.open("w", newline="") as fh:
-                wr = csv.writer(fh, lineterminator="\n")
-                wr.writerow(["frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "occluded"])
-                for i in range(n):
-                    wr.writerow([i, f"{truth['time_s'][i]:.6f}", f"{truth['dx_px'][i]:.6f}",
-                                 f"{truth['dy_px'][i]:.6f}", f"{truth['dx_mm'][i]:.6f}",
-                                 f"{truth['dy_mm'][i]:.6f}", int(truth["occluded"][i])])
-        with atomic_path(out_dir / "poi_truth.npz") as tmp:
-            np.savez_compressed(tmp, dx_px=truth["poi_dx_px"], dy_px=truth["poi_dy_px"],
-                                x_px=truth["poi_x_px"], y_px=truth["poi_y_px"],
-                                occluded_frac=truth["occluded_frac"], gain=gains)
+                    writer.write(r.frame(i, gain))
+                    t2 = time.perf_counter()
+                    truth_out.write(r.truth_frame(i), gain)
+                    spent["meter_s"] += t1 - t0
+                    spent["truth_s"] += time.perf_counter() - t2
+                    frame_times.append(t2 - t1)
+            cv2.imwrite(str(tmp_mask), r.mask)
         meta = r.metadata()
         ft = np.array(frame_times) if frame_times else np.zeros(1)
         meta.update({
             "video": video.name, "frames": n, "codec": asdict(codec),
             "codec_bitrate_bps": codec.bitrate_bps(w.width, w.height, r.cam_cfg.fps),
             "ffmpeg": ffmpeg_version(), "seed": r.seed, "config_hash": config_hash(config),
-            "versions": versions(), "n_pois": int(truth["poi_x_px"].size),
-            "timings": {**r.timings, "truth_s": t_truth, "frames_s": float(ft.sum()),
+            "versions": versions(), "n_pois": int(r.poi_a.size),
+            "timings": {**r.timings, **spent, "frames_s": float(ft.sum()),
                         "frame_median_s": float(np.median(ft)),
                         "fps_rendered": float(n / max(ft.sum(), 1e-9)),
                         "total_s": time.perf_counter() - t_start},
-            "units": {"dx_px": "px", "dx_mm": "mm", "time_s": "s", "mm_per_px": "mm/px"},
+            "units": {"dx_px": "px", "dx_mm": "mm", "time_s": "s", "mm_per_px": "mm/px",
+                      "cam_dx_px": "px", "light_rel": "1", "gain": "1"},
         })
         write_json(out_dir / "render.json", meta)
         return meta
@@ -484,7 +594,7 @@ def render_calibration(config: dict[str, Any], out_dir: str | Path, *, n_images:
     board = scene.add(pyrender.Mesh([quad_primitive(corners, _material(tex, 0.9))]))
     fx, fy, cx, cy = cam.render_intrinsics(plan.render, 1)
     scene.add(pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=20.0, zfar=20000.0), pose=cam.pose())
-    renderer = pyrender.OffscreenRenderer(plan.render.width, plan.render.height)
+    renderer = offscreen_renderer(plan.render.width, plan.render.height)
     rng = np.random.default_rng([seed, 7])
     images, poses = [], []
     it = range(n_images)
@@ -527,40 +637,80 @@ def render_calibration(config: dict[str, Any], out_dir: str | Path, *, n_images:
 
 
 # ----------------------------------------------------------------- figures
+def figure_frames(renderer: BeamRenderer, n_frames: int) -> dict[str, int]:
+    """Frames for the figures of a clip of ``n_frames``: ``motion``, where the
+    measurement point's displacement x speed peaks (the beam visibly bent *and*
+    moving: motion blur) among frames the sheet does not touch; ``occluded``,
+    the middle of the configured occlusion; ``occluding``, the frame of the
+    sheet's entry in which it covers the share of the crop nearest one half."""
+    cc, occ = renderer.cam_cfg, renderer.occ_cfg
+    mid = 0.5 * cc.exposure_s + float(renderer.camera.row_times(np.rint(renderer.measure_px[1])))
+    t = np.arange(n_frames) / cc.fps
+    x = np.array([renderer._beam_points(ti + mid)[0][0] for ti in t])
+    speed = np.abs(np.gradient(x, t)) if n_frames > 1 else np.zeros(1)
+    sheet_free = np.array([not renderer.sheet.present_during(ti, ti + 1 / cc.fps) for ti in t])
+    score = np.where(sheet_free, np.abs(x - renderer.measure_point[0]) * speed, -1.0)
+    frames = {"motion": int(np.argmax(score))}
+    first, last = occ.start_s, occ.start_s + occ.duration_s
+    if occ.enabled and last <= (n_frames - 1) / cc.fps:
+        frames["occluded"] = int(np.floor(0.5 * (first + last) * cc.fps))
+        crop = renderer.crop_window
+        vv, uu = np.mgrid[crop.y:crop.y + crop.height:8, crop.x:crop.x + crop.width:8]
+        rays = renderer.camera.pixel_rays(uu.astype(float), vv.astype(float))
+        entry = np.arange(max(0, int((first - occ.transit_s) * cc.fps)), int(np.ceil(first * cc.fps)))
+        share = [renderer.sheet.covers(i / cc.fps + mid, *renderer.sheet_coords(rays)).mean()
+                 for i in entry]
+        if entry.size:
+            frames["occluding"] = int(entry[np.argmin(np.abs(np.array(share) - 0.5))])
+    return frames
+
+
 def render_figures(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path) -> list[Path]:
-    """render_full.png (4K, downscaled to 1920 wide), render_crop.png, render_occluded.png."""
+    """render_full.png (4K, downscaled to 1920 wide) and render_crop.png at a frame of
+    motion, render_occluded.png (and render_occluding.png, the sheet's entry) with
+    the config's occlusion (switched on if the config has it off)."""
     from refflow.io import atomic_path
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
 
-    def save(name, rgb):
+    def save(name, renderer, frame, box=None, size=None):
+        img = renderer.frame(frame, renderer.gains(frame + 1)[frame])
+        if box is not None:
+            img = img.copy()
+            cv2.rectangle(img, (box.x, box.y), (box.x + box.width, box.y + box.height),
+                          (255, 200, 0), 4)
+        if size is not None:
+            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
         with atomic_path(out_dir / name) as tmp:
-            cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         written.append(out_dir / name)
 
-    frame = 15  # a quarter period into the 4 Hz swing
-    full = BeamRenderer(config, shapes, full_frame=True)
+    occ = asdict(OcclusionConfig.from_config(config))
+    occluding = {**config, "occlusion": {**occ, "enabled": True}}
+    crop = BeamRenderer(occluding, shapes)
     try:
-        img = full.frame(frame, full.gains(frame + 1)[frame])
-        c = full.crop_window
-        img = img.copy()
-        cv2.rectangle(img, (c.x, c.y), (c.x + c.width, c.y + c.height), (255, 200, 0), 4)
-        save("render_full.png", cv2.resize(img, (1920, 1080), interpolation=cv2.INTER_AREA))
-    finally:
-        full.close()
-    crop = BeamRenderer(config, shapes)
-    try:
-        save("render_crop.png", crop.frame(frame, crop.gains(frame + 1)[frame]))
+        n = crop.n_frames()
+        frames = figure_frames(crop, n)
+        if "occluded" not in frames:
+            raise ValueError(f"the occlusion ({occ['start_s']} s + {occ['duration_s']} s) does "
+                             f"not fit the {n} frames the shapes allow: adjust occlusion.start_s "
+                             f"or pass longer shapes")
+        # the figures of the beam in motion show it without the sheet
+        clear = {**config, "occlusion": {**occ, "enabled": False}}
+        full = BeamRenderer(clear, shapes, full_frame=True)
+        try:
+            save("render_full.png", full, frames["motion"], box=full.crop_window, size=(1920, 1080))
+        finally:
+            full.close()
+        plain = BeamRenderer(clear, shapes)
+        try:
+            save("render_crop.png", plain, frames["motion"])
+        finally:
+            plain.close()
+        save("render_occluded.png", crop, frames["occluded"])
+        if "occluding" in frames:  # not declared by the workflow rule: an extra view
+            save("render_occluding.png", crop, frames["occluding"])
     finally:
         crop.close()
-    occ = OcclusionConfig(enabled=True, start_s=0.2, duration_s=1.0)
-    occr = BeamRenderer(config, shapes, occlusion=occ)
-    try:
-        f = int(0.6 * occr.cam_cfg.fps)
-        save("render_occluded.png", occr.frame(f, occr.gains(f + 1)[f]))
-        f2 = int(0.185 * occr.cam_cfg.fps)  # the leading edge crosses the crop
-        save("render_occluding.png", occr.frame(f2, occr.gains(f2 + 1)[f2]))
-    finally:
-        occr.close()
     return written

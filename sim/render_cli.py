@@ -48,7 +48,7 @@ def _parser() -> argparse.ArgumentParser:
     cal.add_argument("--out-dir", required=True)
     cal.add_argument("--n-images", type=int, default=15)
     cal.add_argument("--no-progress", action="store_true")
-    fig = sub.add_parser("figures", help="render_full/crop/occluded PNGs")
+    fig = sub.add_parser("figures", help="render_full/crop/occluded PNGs (and render_occluding.png)")
     fig.add_argument("--config")
     fig.add_argument("--shapes", help="default: the analytic 4 Hz first mode")
     fig.add_argument("--out-dir", default="results/figures")
@@ -77,9 +77,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{len(meta['images'])} images in {args.out_dir}")
             return 0
         if args.command == "figures":
+            from sim.occlusion import OcclusionConfig
             from sim.render import render_figures
-            shapes = (BeamShapes.load(args.shapes) if args.shapes
-                      else BeamShapes(**synthetic_shapes(duration_s=2.0)))
+            occ = OcclusionConfig.from_config(config)
+            # the analytic mode, long enough for the config's occlusion
+            shapes = (BeamShapes.load(args.shapes) if args.shapes else BeamShapes(
+                **synthetic_shapes(duration_s=max(2.0, occ.start_s + occ.duration_s + 1.0))))
             for path in render_figures(config, shapes, args.out_dir):
                 print(path)
             return 0

@@ -13,7 +13,9 @@ wall stands ``scene.background_distance_mm`` behind the beam.
 
 from __future__ import annotations
 
+import functools
 import os
+import types
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -21,34 +23,58 @@ from typing import Any
 import cv2
 import numpy as np
 
-# pyrender 0.1.45 still uses ``np.infty`` (Mesh.bounds), an alias removed in
-# NumPy 2.0. Restore the alias here, the one place that imports pyrender for
-# the sim package, instead of pinning NumPy.
+# NumPy 2 shim: pyrender 0.1.45 still reads ``np.infty`` (``Mesh.bounds``, used
+# whenever a mesh is added to a scene), an alias NumPy 2.0 removed. Restore the
+# alias before pyrender is imported and used (sim imports pyrender only through
+# this module) rather than pin NumPy < 2; on NumPy 1.x the alias exists and
+# nothing changes. tests/unit/test_render.py checks ``Mesh.bounds``. The noqa
+# keeps ``ruff --fix`` (rule NPY201) from rewriting the alias into a no-op
+# ``np.inf = np.inf``, which is how this shim once broke.
 if not hasattr(np, "infty"):
-    np.inf = np.inf
+    np.infty = np.inf  # noqa: NPY201
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import pyrender  # noqa: E402
 
 
-def release_renderer(renderer: pyrender.OffscreenRenderer) -> None:
-    """Free an OffscreenRenderer's GL buffers without ``eglTerminate``.
+def _delete_own_egl_context(platform) -> None:
+    """EGLPlatform.delete_context without ``eglTerminate``: destroy this context only."""
+    from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
+    display, context = platform._egl_display, platform._egl_context
+    if display is None or context is None:
+        return
+    eglMakeCurrent(display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
+    if not eglDestroyContext(display, context):
+        raise RuntimeError("eglDestroyContext failed while releasing a renderer")
+    platform._egl_context = platform._egl_display = None
 
-    pyrender's ``OffscreenRenderer.delete`` terminates the process-wide EGL
-    display, and destroying one context also broke the other live renderers
-    under Mesa's EGL here; so free this renderer's framebuffers and GL objects
-    (the bulk of the memory) and keep its small context alive until exit
-    (the platform object's own finaliser would call ``eglTerminate`` too).
+
+def _spare_other_renderers(renderer: pyrender.OffscreenRenderer) -> pyrender.OffscreenRenderer:
+    platform = getattr(renderer, "_platform", None)
+    if getattr(platform, "_egl_context", None) is not None:
+        platform.delete_context = types.MethodType(_delete_own_egl_context, platform)
+    return renderer
+
+
+def offscreen_renderer(width: int, height: int) -> pyrender.OffscreenRenderer:
+    """A pyrender OffscreenRenderer that frees only its own EGL context.
+
+    pyrender's clean-up (``OffscreenRenderer.delete``, also run by its
+    finaliser when a renderer is garbage-collected) ends with ``eglTerminate``
+    on the process-wide default display, which invalidates the contexts of
+    every other live renderer (a crop and a full frame live side by side in
+    tests and figures). This one destroys its own context and leaves the
+    display, one per process, initialised. Other platforms (OSMesa) own their
+    contexts and are left as pyrender made them.
     """
+    return _spare_other_renderers(pyrender.OffscreenRenderer(width, height))
+
+
+def release_renderer(renderer: pyrender.OffscreenRenderer) -> None:
+    """Free a renderer's GL objects, framebuffers and EGL context, sparing the
+    other renderers' (see :func:`offscreen_renderer`); a second call does nothing."""
     if getattr(renderer, "_renderer", None) is None:
         return
-    renderer._platform.make_current()
-    renderer._renderer.delete()
-    _RETIRED_PLATFORMS.append(renderer._platform)
-    renderer._renderer = None
-    renderer._platform = None
-
-
-_RETIRED_PLATFORMS: list = []
+    _spare_other_renderers(renderer).delete()
 
 
 @dataclass(frozen=True)
@@ -71,6 +97,21 @@ class SceneConfig:
     fill_intensity: float = 0.2
     ambient: float = 0.2
     ring_spacing_mm: float = 2.0             # mesh resolution along the beam
+    # static high-contrast features on the wall inside the measurement crop (bolts,
+    # stickers, cable clips): corners that lure sparse trackers (paper Fig. 6)
+    distractors: bool = False
+    distractor_count: int = 6
+    distractor_contrast: float = 0.8         # 0..1: departure from the wall's grey
+    distractor_size_mm: float = 15.0
+    # light disturbances (sim.disturbance.Illumination)
+    flicker: bool = False
+    flicker_hz: float = 100.0                # intensity modulation: twice the mains frequency
+    flicker_depth: float = 0.2               # relative amplitude (intensity 1 +- depth)
+    clouds: bool = False
+    cloud_depth: float = 0.15                # RMS relative change of the light
+    cloud_time_scale_s: float = 3.0          # shortest period of the changes
+    light_drift: bool = False
+    light_drift_per_min: float = -0.1        # relative change of the light per minute
 
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> SceneConfig:
@@ -83,8 +124,14 @@ class SceneConfig:
                     "background_distance_mm", "ring_spacing_mm", "texture_feature_mm"):
             if getattr(out, key) <= 0:
                 raise ValueError(f"scene.{key} must be > 0, got {getattr(out, key)!r}")
-        if not 0 <= out.texture_contrast <= 1:
-            raise ValueError(f"scene.texture_contrast must be in [0, 1], got {out.texture_contrast!r}")
+        for key in ("texture_contrast", "distractor_contrast", "flicker_depth"):
+            if not 0 <= getattr(out, key) <= 1:
+                raise ValueError(f"scene.{key} must be in [0, 1], got {getattr(out, key)!r}")
+        for key in ("distractor_count", "distractor_size_mm", "flicker_hz", "cloud_time_scale_s"):
+            if getattr(out, key) <= 0:
+                raise ValueError(f"scene.{key} must be > 0, got {getattr(out, key)!r}")
+        if out.cloud_depth < 0:
+            raise ValueError(f"scene.cloud_depth must be >= 0, got {out.cloud_depth!r}")
         if not 0 < out.measure_height_mm <= out.beam_length_mm:
             raise ValueError(f"scene.measure_height_mm must lie on the beam (0, "
                              f"{out.beam_length_mm}], got {out.measure_height_mm!r}")
@@ -280,20 +327,88 @@ def logo_texture(size: int = 512) -> np.ndarray:
     return img
 
 
+WALL_GREY = 0.35  # linear albedo of the wall's mean
+
+
 def wall_texture(cfg: SceneConfig, rng: np.random.Generator,
                  shape: tuple[int, int] = (1536, 2560)) -> np.ndarray:
     """A lab wall: mid grey with multi-scale blotches and a few dark objects."""
     size = max(shape)
-    base = 0.35 + cfg.background_contrast * 0.12 * (
+    base = WALL_GREY + cfg.background_contrast * 0.12 * (
         _smooth_noise(shape, 40, rng) + 0.6 * _smooth_noise(shape, 6, rng)
         + 0.4 * _smooth_noise(shape, 1.5, rng))
     img = np.repeat(base[..., None], 3, axis=2) * np.array([1.0, 0.98, 0.93], np.float32)
     for _ in range(60):
         y, x = rng.integers(0, shape[0]), rng.integers(0, shape[1])
         w, h = rng.integers(size // 80, size // 20, 2)
-        shade = float(rng.uniform(0.04, 0.25))  # darker than the paint: the beam stays visible
+        # darker than the paint, so the beam stays visible; flat at zero contrast
+        relative = cfg.background_contrast / SceneConfig.background_contrast
+        shade = WALL_GREY + (float(rng.uniform(0.04, 0.25)) - WALL_GREY) * relative
         cv2.rectangle(img, (int(x), int(y)), (int(x + w), int(y + h)), (shade,) * 3, -1)
     return _to_srgb8(np.clip(img, 0, 1))
+
+
+def distractor_atlas(contrast: float, tile: int = 128) -> np.ndarray:
+    """Four wall fixtures side by side (sRGB8, tile x 4*tile): an anchor plate with
+    a hex bolt, a QC sticker, a cable clip with its cable, a cross-hair marker.
+
+    Dark parts have linear albedo ``WALL_GREY * (1 - contrast)``, bright parts
+    ``WALL_GREY + (0.95 - WALL_GREY) * contrast``: at zero contrast only the
+    fixtures' flat outline on the textured wall remains.
+    """
+    wall, dark, mid, bright = 0, 1, 2, 3  # drawn as indices (OpenCV draws text in 8 bits only)
+    img = np.zeros((tile, 4 * tile), np.uint8)
+    t = tile
+    # anchor plate with a hex bolt
+    cv2.rectangle(img, (4, 4), (t - 5, t - 5), mid, -1)
+    hexagon = np.array([[t / 2 + 0.3 * t * np.cos(a), t / 2 + 0.3 * t * np.sin(a)]
+                        for a in np.arange(6) * np.pi / 3], np.int32)
+    cv2.fillConvexPoly(img, hexagon, dark)
+    cv2.circle(img, (t // 2, t // 2), t // 8, bright, -1)
+    # QC sticker: bright label, dark border, bar code and a line of text
+    x0 = t
+    cv2.rectangle(img, (x0 + 6, 16), (x0 + t - 7, t - 17), bright, -1)
+    cv2.rectangle(img, (x0 + 6, 16), (x0 + t - 7, t - 17), dark, 3)
+    for i, width in enumerate((3, 1, 2, 4, 1, 3, 2, 1, 3)):
+        bx = x0 + 16 + 10 * i
+        cv2.rectangle(img, (bx, 28), (bx + width, 60), dark, -1)
+    cv2.putText(img, "QC 07", (x0 + 16, t - 30), cv2.FONT_HERSHEY_SIMPLEX, t / 170, dark, 2)
+    # cable clip: a dark cable across a bright saddle
+    x0 = 2 * t
+    cv2.rectangle(img, (x0 + t // 2 - 6, 0), (x0 + t // 2 + 6, t - 1), dark, -1)
+    cv2.rectangle(img, (x0 + 14, t // 2 - 18), (x0 + t - 15, t // 2 + 18), bright, -1)
+    cv2.circle(img, (x0 + 24, t // 2), 6, dark, -1)
+    cv2.circle(img, (x0 + t - 25, t // 2), 6, dark, -1)
+    # cross-hair marker: a 2 x 2 checker in a bright square
+    x0 = 3 * t
+    cv2.rectangle(img, (x0 + 8, 8), (x0 + t - 9, t - 9), bright, -1)
+    cv2.rectangle(img, (x0 + 20, 20), (x0 + t // 2, t // 2), dark, -1)
+    cv2.rectangle(img, (x0 + t // 2, t // 2), (x0 + t - 21, t - 21), dark, -1)
+    d, b = WALL_GREY * (1 - contrast), WALL_GREY + (0.95 - WALL_GREY) * contrast
+    levels = {wall: WALL_GREY, dark: d, mid: 0.5 * (d + b), bright: b}
+    albedo = np.array([levels[i] for i in range(4)])[img]
+    return _to_srgb8(np.repeat(albedo[..., None], 3, axis=2))
+
+
+def distractor_mesh(cfg: SceneConfig, centres_xz: np.ndarray, kinds: np.ndarray, plane_y_mm: float,
+                    material) -> pyrender.Mesh:
+    """Square fixtures of ``cfg.distractor_size_mm`` centred at ``centres_xz`` on the
+    plane y = ``plane_y_mm``, facing the camera; ``kinds`` index the atlas tiles."""
+    half = cfg.distractor_size_mm / 2
+    n = len(centres_xz)
+    dx = np.array([-half, half, half, -half])
+    dz = np.array([-half, -half, half, half])
+    pos = np.stack([centres_xz[:, :1] + dx, np.full((n, 4), plane_y_mm),
+                    centres_xz[:, 1:] + dz], -1).reshape(-1, 3)
+    tile_u = (np.asarray(kinds)[:, None] + np.array(UPRIGHT_UV)[None, :, 0]) / 4
+    uv = np.stack([tile_u, np.broadcast_to(np.array(UPRIGHT_UV)[:, 1], (n, 4))], -1).reshape(-1, 2)
+    base = 4 * np.arange(n, dtype=np.uint32)[:, None]
+    idx = np.concatenate([base + np.array([0, 1, 2]), base + np.array([0, 2, 3])])
+    prim = pyrender.Primitive(positions=pos.astype(np.float32),
+                              normals=np.tile(np.float32([0, -1, 0]), (4 * n, 1)),
+                              texcoord_0=uv.astype(np.float32), indices=idx.astype(np.uint32),
+                              material=material)
+    return pyrender.Mesh([prim])
 
 
 def paper_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
@@ -332,8 +447,17 @@ def _material(texture: np.ndarray, roughness: float = 0.8,
                                               baseColorFactor=(factor, factor, factor, 1.0))
 
 
-def quad_primitive(corners: np.ndarray, material, uv=((0, 1), (1, 1), (1, 0), (0, 0))):
-    """Two-triangle quad; ``corners`` (4, 3) counter-clockwise seen from the front."""
+# pyrender uploads a texture image bottom row first (``np.flip(source, 0)``), so
+# texture coordinate v = 0 is the image's *bottom* row and v = 1 its top: the
+# OpenGL convention, not glTF's (trimesh flips v when it loads glTF/OBJ).
+# Corners (bottom-left, bottom-right, top-right, top-left) therefore take
+# (0, 0), (1, 0), (1, 1), (0, 1) to show an image upright.
+UPRIGHT_UV = ((0, 0), (1, 0), (1, 1), (0, 1))
+
+
+def quad_primitive(corners: np.ndarray, material, uv=UPRIGHT_UV):
+    """Two-triangle quad; ``corners`` (4, 3) counter-clockwise seen from the front, starting
+    bottom-left; the texture shows upright (image row 0 at the top edge)."""
     corners = np.asarray(corners, np.float32)
     normal = np.cross(corners[1] - corners[0], corners[3] - corners[0])
     normal = normal / np.linalg.norm(normal)
@@ -383,7 +507,7 @@ class BeamMesh:
         for f in range(4):
             # 4 texels/mm on a 64-texel-wide texture (repeats on the wide faces)
             u = np.tile([0.0, self.face_width[f] * 4 / 64], n)
-            v = np.repeat(1.0 - self.z0 / cfg.beam_length_mm, 2)
+            v = np.repeat(1.0 - self.z0 / cfg.beam_length_mm, 2)  # (random paint: any way up)
             uv.append(np.stack([u, v], 1))
         self.uv = np.concatenate(uv).astype(np.float32)
 
@@ -437,16 +561,41 @@ class BeamMesh:
         return quad_primitive(corners, self.logo_material)
 
 
-def build_static_scene(cfg: SceneConfig, *, camera_y_mm: float, aim_z_mm: float,
-                       seed: int) -> tuple[pyrender.Scene, dict[str, Any]]:
-    """Scene with lights, wall, clamp; returns it and the materials to reuse."""
+@functools.lru_cache(maxsize=4)
+def _static_textures(beam_length_mm: float, texture_feature_mm: float, paint_albedo: float,
+                     texture_contrast: float, background_contrast: float, seed: int
+                     ) -> dict[str, np.ndarray]:
+    """The scene's textures (read-only), cached: the wall alone takes ~0.5 s and a
+    crop and a full-frame renderer of one clip share them."""
+    cfg = SceneConfig(beam_length_mm=beam_length_mm, texture_feature_mm=texture_feature_mm,
+                      paint_albedo=paint_albedo, texture_contrast=texture_contrast,
+                      background_contrast=background_contrast)
     rng = np.random.default_rng([seed, 1])
+    # The wall is stored upside down: quads used to show textures flipped (see
+    # UPRIGHT_UV), and the trackers' accuracy depends on what the wall shows
+    # around the beam (a dark patch behind it doubles deepflow's error), so the
+    # fix of the logo's orientation keeps the wall the scenarios were measured on.
+    out = {"paint": paint_texture(cfg, rng), "logo": logo_texture(),
+           "wall": np.ascontiguousarray(wall_texture(cfg, rng)[::-1]), "paper": paper_texture(rng)}
+    for texture in out.values():
+        texture.flags.writeable = False
+    return out
+
+
+def build_static_scene(cfg: SceneConfig, *, camera_y_mm: float, aim_z_mm: float, seed: int,
+                       distractors: tuple[np.ndarray, np.ndarray] | None = None
+                       ) -> tuple[pyrender.Scene, dict[str, Any]]:
+    """Scene with lights, wall, clamp (and the wall fixtures at ``distractors``:
+    centres (n, 2) in world x, z and atlas kinds (n,)); returns it and the
+    materials to reuse."""
+    textures = _static_textures(cfg.beam_length_mm, cfg.texture_feature_mm, cfg.paint_albedo,
+                                cfg.texture_contrast, cfg.background_contrast, seed)
     scene = pyrender.Scene(ambient_light=np.full(3, cfg.ambient), bg_color=np.zeros(4))
     facing = shading(cfg, np.array([0.0, -1.0, 0.0]))  # surfaces facing the camera
-    paint = _material(paint_texture(cfg, rng), roughness=0.7)  # shaded per vertex
-    logo = _material(logo_texture(), factor=facing)
-    wall = _material(wall_texture(cfg, rng), factor=facing)
-    paper = _material(paper_texture(rng), roughness=0.95, factor=facing)
+    paint = _material(textures["paint"], roughness=0.7)  # shaded per vertex
+    logo = _material(textures["logo"], factor=facing)
+    wall = _material(textures["wall"], factor=facing)
+    paper = _material(textures["paper"], roughness=0.95, factor=facing)
     # the wall: a quad facing the camera, wide enough to fill the field of view
     yb = cfg.background_distance_mm
     half_w, half_h = 0.75 * (yb - camera_y_mm), 0.45 * (yb - camera_y_mm)  # > the 4K field of view
@@ -459,17 +608,8 @@ def build_static_scene(cfg: SceneConfig, *, camera_y_mm: float, aim_z_mm: float,
     scene.add(box_mesh((cfg.beam_thickness_mm / 2, -w / 2 - 10, -80), (40, w / 2 + 10, 60),
                        (0.25, 0.25, 0.27)), name="clamp_right")
     scene.add(box_mesh((-200, -200, -120), (200, 200, -80), (0.3, 0.3, 0.3)), name="base")
+    if distractors is not None and len(distractors[0]):
+        fixtures = _material(distractor_atlas(cfg.distractor_contrast), factor=facing)
+        scene.add(distractor_mesh(cfg, *distractors, yb - 1.0, fixtures), name="distractors")
     return scene, {"paint": paint, "logo": logo, "paper": paper}
 
-
-def _look_pose(direction: np.ndarray) -> np.ndarray:
-    """Pose whose -z axis points along ``direction`` (pyrender light convention)."""
-    d = direction / np.linalg.norm(direction)
-    z = -d
-    up = np.array([0.0, 0.0, 1.0])
-    x = np.cross(up, z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2] = x, y, z
-    return pose

@@ -29,6 +29,11 @@ def test_cli_renders_h264_clip_with_occlusion(tmp_path):
     occluded = np.array([int(r["occluded"]) for r in rows])
     t = np.array([float(r["time_s"]) for r in rows])
     assert np.array_equal(occluded, ((t >= 0.4 - 1e-9) & (t < 0.9 - 1e-9)).astype(int))
+    frac = np.array([float(r["occluded_frac"]) for r in rows])
+    assert np.all(frac[occluded == 1] == 1.0) and np.all(frac[occluded == 0] == 0.0)
+    gain = np.array([float(r["gain"]) for r in rows])
+    # auto-exposure backs off under the white sheet and recovers (tau = 0.25 s) after it
+    assert gain[50] < 0.7 * gain[10] and gain[-1] > 1.2 * gain.min()
     frames = list(read_video_frames(out / "video.mp4"))
     assert len(frames) == 72 and frames[0].shape == (400, 800, 3)
     # decoded H.264 stays close to the raw frame (phone-like, lossy)
@@ -64,15 +69,21 @@ def test_crop_equals_full_4k_frame(tmp_path):
     from sim.render import BeamRenderer
     from sim.scene import BeamShapes, synthetic_shapes
     shapes = BeamShapes(**synthetic_shapes(duration_s=0.5))
-    cfg = {"seed": 4}
+    cfg = {"seed": 4, "scene": {"distractors": True}}
     full = BeamRenderer(cfg, shapes, full_frame=True)
     crop = BeamRenderer(cfg, shapes)
     try:
         c = crop.window
-        a = full.frame(5, 0.5)[c.y:c.y + c.height, c.x:c.x + c.width]
-        b = crop.frame(5, 0.5)
-        diff = np.abs(a.astype(int) - b.astype(int))
-        assert diff.max() <= 1 and (diff > 0).mean() < 1e-3
+        gains = full.gains(16)
+        assert np.array_equal(gains, crop.gains(16))
+        for frame in (1, 5, 15):
+            a = full.frame(frame, gains[frame])[c.y:c.y + c.height, c.x:c.x + c.width]
+            b = crop.frame(frame, gains[frame])
+            diff = np.abs(a.astype(int) - b.astype(int))
+            # identical maps, noise, weights and gain; only the GL rasterisation of
+            # another viewport differs: an MSAA sample on an edge of one sub-frame
+            # (see tests/unit/test_render.py::_assert_crop_matches)
+            assert diff.max() <= 8 and (diff > 0).mean() < 2e-4, (frame, int((diff > 0).sum()))
     finally:
         full.close()
         crop.close()
