@@ -88,4 +88,6 @@ def key_figure_paths():
 
 
 def render_figure_paths():
-    return [f"{RESULTS}/figures/render_{view}.png" for view in ("full", "crop", "occluded")]
+    return [
+        f"{RESULTS}/figures/render_{view}.png" for view in ("full", "crop", "occluded", "occluding")
+    ]
