@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +38,7 @@ def parse_board(text: str) -> tuple[int, int]:
 
 
 def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
-              max_views: int = 60, fix_k3: bool = True) -> dict[str, Any]:
+              max_views: int = 60, fix_k3: bool = True, step: int = 1) -> dict[str, Any]:
     """Calibrate intrinsics and distortion from checkerboard views.
 
     Parameters
@@ -51,6 +53,9 @@ def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
     fix_k3 : bool
         Keep ``k3 = 0`` (default): with views that do not reach the image corners,
         k2 and k3 trade off against each other and k3 mostly fits noise.
+    step : int
+        Try every ``step``-th frame only (a video of a slowly moved board holds
+        many near-identical views; the board search is the slow part).
 
     Returns
     -------
@@ -58,18 +63,25 @@ def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
         ``camera_matrix`` (3x3), ``dist_coeffs`` (k1, k2, p1, p2, k3),
         ``rms_px`` reprojection error, ``image_size`` [w, h], ``views_used``.
     """
-    if square_mm <= 0:
+    if not (math.isfinite(square_mm) and square_mm > 0):
         raise InputError(f"--square-mm {square_mm} is not positive: pass the square side in mm")
-    frames = FrameSource(source, fps=1.0)
+    if step < 1:
+        raise InputError(f"--step {step} must be >= 1")
+    # A cut calibration video still holds good views: use the ones that decode.
+    frames = FrameSource(source, require_fps=False, allow_truncated=True)
     obj = board_points(*board, square_mm)
     image_points = []
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
-    for _, _, grey in frames:
-        found, corners = cv2.findChessboardCorners(
-            grey, board, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
-        if found:
-            corners = cv2.cornerSubPix(grey, corners, (5, 5), (-1, -1), criteria)
-            image_points.append(corners)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for index, _, grey in frames:
+            if index % step:
+                continue
+            found, corners = cv2.findChessboardCorners(
+                grey, board, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+            if found:
+                corners = cv2.cornerSubPix(grey, corners, (5, 5), (-1, -1), criteria)
+                image_points.append(corners)
     if len(image_points) < 3:
         raise InputError(
             f"the {board[0]}x{board[1]} board was found in {len(image_points)} of "
@@ -90,6 +102,7 @@ def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
         "square_mm": float(square_mm),
         "views_used": len(image_points),
         "fix_k3": bool(fix_k3),
+        "notes": frames.notes + [str(w.message) for w in caught],
     }
 
 
@@ -131,20 +144,47 @@ class Undistorter:
                                                    (roi.width, roi.height), cv2.CV_32FC1)
         self.map_x = map_x - np.float32(roi.x)
         self.map_y = map_y - np.float32(roi.y)
+        self.camera = camera
+        self.dist = dist
 
     def __call__(self, grey_roi: np.ndarray) -> np.ndarray:
         return cv2.remap(grey_roi, self.map_x, self.map_y, cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE)
 
+    def map_mask(self, mask_roi: np.ndarray) -> np.ndarray:
+        """Carry a mask drawn on the raw (distorted) ROI into the undistorted ROI.
 
-def scale_from_known_length(length_mm: float, between: str) -> float:
-    """mm per pixel from a known length between two image points ``X1,Y1,X2,Y2``."""
-    if length_mm <= 0:
+        Each undistorted pixel takes the mask value at its raw source position
+        (bilinear, threshold 1/2); where that lies outside the ROI crop it is off.
+        """
+        moved = cv2.remap(mask_roi.astype(np.uint8) * np.uint8(255), self.map_x, self.map_y,
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return moved > 127
+
+    def undistort_points(self, points_xy: np.ndarray) -> np.ndarray:
+        """Raw full-frame pixel ``(x, y)`` points to undistorted full-frame pixels."""
+        points = np.asarray(points_xy, np.float64).reshape(-1, 1, 2)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+        ideal = cv2.undistortPoints(points, self.camera, self.dist, None, None, self.camera, criteria)
+        return ideal.reshape(-1, 2)
+
+
+def scale_from_known_length(length_mm: float, between: str,
+                            undistort_points: Callable[[np.ndarray], np.ndarray] | None = None) -> float:
+    """mm per pixel from a known length between two image points ``X1,Y1,X2,Y2``.
+
+    The points are raw video pixels; with ``undistort_points`` (a calibration's
+    :meth:`Undistorter.undistort_points`) their distance is measured in the
+    undistorted image, whose pixels the displacement is measured in.
+    """
+    if not (math.isfinite(length_mm) and length_mm > 0):
         raise InputError(f"--known-length {length_mm} is not positive: pass the length in mm")
     try:
         x1, y1, x2, y2 = (float(v) for v in between.split(","))
     except ValueError:
         raise InputError(f"--between {between!r} is not X1,Y1,X2,Y2 (pixel coordinates)") from None
+    if undistort_points is not None:
+        (x1, y1), (x2, y2) = undistort_points(np.array([[x1, y1], [x2, y2]]))
     distance_px = math.hypot(x2 - x1, y2 - y1)
     if distance_px <= 0:
         raise InputError(f"--between {between!r}: the two points coincide; pick two distinct points")

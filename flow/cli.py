@@ -1,15 +1,18 @@
 """``refflow``: measure structural displacement from a video against a reference frame.
 
-Subcommands: ``track`` (measure), ``methods`` (list), ``calibrate`` (checkerboard),
-``pois`` (figure of the mask POIs next to the corners KLT would use).
-Bad input ends with a one-line message on stderr and exit code 2, and no output file.
+Subcommands: ``track`` (measure), ``merge`` (join frame ranges tracked
+separately), ``methods`` (list), ``calibrate`` (checkerboard), ``pois`` (figure
+of the mask POIs next to the corners KLT would use), ``plot`` (time history and
+spectrum of measured CSVs).
+
+Bad input ends with a one-line message on stderr and exit code 2, and no output
+file; anything else that goes wrong is a bug and shows its traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import sys
 import time
@@ -22,7 +25,7 @@ import numpy as np
 
 from flow import registry
 from flow.io import FrameSource, InputError, Roi
-from refflow.io import atomic_path, versions, write_json
+from refflow.io import atomic_paths, json_text, versions, write_json
 
 EXIT_USAGE = 2
 CSV_COLUMNS = ("frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "valid",
@@ -40,27 +43,19 @@ def _default_method() -> tuple[str, str | None]:
                                + "; using deepflow-opencv")
 
 
-def _positive(name: str, value: float | None) -> None:
+def _finite_or_none(value: float | None) -> float | None:
+    return value if value is not None and math.isfinite(value) else None
+
+
+def _positive(name: str, value: float | None, what: str) -> None:
     if value is not None and not (math.isfinite(value) and value > 0):
-        raise InputError(f"{name} {value} is not positive: pass a scale > 0 (mm per pixel)")
+        raise InputError(f"{name} {value} is not positive: pass {what} > 0")
 
 
-def _mask_for(args: argparse.Namespace, source: FrameSource) -> np.ndarray:
-    from flow import poi
-
-    given = [a for a in ("mask", "rect", "polygon") if getattr(args, a)]
-    if len(given) != 1:
-        raise InputError("pass exactly one of --mask MASK.png, --rect X,Y,W,H or --polygon X1,Y1,...")
-    if args.mask:
-        return poi.load_mask(args.mask, frame_size=source.size, roi=source.roi)
-    if args.rect:
-        return poi.rect_mask(args.rect, roi=source.roi)
-    return poi.polygon_mask(args.polygon, roi=source.roi)
-
-
-def _open(args: argparse.Namespace) -> FrameSource:
+def _open(args: argparse.Namespace, *, need_time: bool = True) -> FrameSource:
     roi = Roi.parse(args.roi) if args.roi else None
-    return FrameSource(args.input, roi=roi, fps=args.fps)
+    return FrameSource(args.input, roi=roi, fps=args.fps, require_fps=need_time,
+                       allow_truncated=getattr(args, "allow_truncated", False))
 
 
 def _undistorter(args: argparse.Namespace, source: FrameSource) -> tuple[Any, dict[str, Any] | None]:
@@ -70,6 +65,27 @@ def _undistorter(args: argparse.Namespace, source: FrameSource) -> tuple[Any, di
 
     calibration = load_calibration(args.calibration)
     return Undistorter(calibration, source.roi, source.size), calibration
+
+
+def _mask_for(args: argparse.Namespace, source: FrameSource, undistort: Any) -> np.ndarray:
+    """The POI mask in the pixels the frames are measured in.
+
+    Masks, rectangles and polygons are drawn on the raw video frames (what any
+    viewer shows); with a calibration they are carried into the undistorted
+    frames, where the flow is computed.
+    """
+    from flow import poi
+
+    given = [a for a in ("mask", "rect", "polygon") if getattr(args, a)]
+    if len(given) != 1:
+        raise InputError("pass exactly one of --mask MASK.png, --rect X,Y,W,H or --polygon X1,Y1,...")
+    if args.mask:
+        mask = poi.load_mask(args.mask, frame_size=source.size, roi=source.roi)
+    elif args.rect:
+        mask = poi.rect_mask(args.rect, roi=source.roi)
+    else:
+        mask = poi.polygon_mask(args.polygon, roi=source.roi)
+    return undistort.map_mask(mask) if undistort is not None else mask
 
 
 def _method_params(args: argparse.Namespace, name: str) -> dict[str, Any]:
@@ -93,6 +109,15 @@ def _method_params(args: argparse.Namespace, name: str) -> dict[str, Any]:
     return params
 
 
+def _build_method(name: str, params: dict[str, Any]) -> Any:
+    try:
+        return registry.get_method(name, **params)
+    except (TypeError, ValueError) as err:
+        # The method constructors reject bad keyword values with ValueError: here that
+        # value came from the command line, so it is the user's to fix.
+        raise InputError(f"bad --param for {name}: {err} (see `refflow methods`)") from None
+
+
 def cmd_methods(args: argparse.Namespace) -> int:
     width = max(len(n) for n in registry.available())
     kinds = {n: registry._REGISTRY[n].kind for n in registry.available()}
@@ -111,6 +136,8 @@ def cmd_methods(args: argparse.Namespace) -> int:
 
 def _scale_from_file(path: str) -> float:
     """``mm_per_px`` from a JSON file (a scale file, or any sidecar that records one)."""
+    import json
+
     try:
         data = json.loads(Path(path).read_text())
     except FileNotFoundError:
@@ -123,9 +150,136 @@ def _scale_from_file(path: str) -> float:
     return float(value)
 
 
+def _check_scale_options(args: argparse.Namespace) -> None:
+    """Reject bad scale options before any frame is read."""
+    _positive("--mm-per-px", args.mm_per_px, "the image scale in mm per pixel")
+    _positive("--known-length", args.known_length, "the known length in mm")
+    given = [args.mm_per_px is not None, args.known_length is not None, args.scale_file is not None]
+    if sum(given) > 1:
+        raise InputError("pass one scale: --mm-per-px, --known-length/--between or --scale-file")
+    if (args.known_length is None) != (args.between is None):
+        raise InputError("--known-length needs --between X1,Y1,X2,Y2 (and vice versa)")
+
+
+def _scale(args: argparse.Namespace, undistort_points: Any) -> tuple[float, str]:
+    """``(mm_per_px, how)``; NaN when no scale was given (mm columns are then NaN)."""
+    from flow.calibration import scale_from_known_length
+
+    if args.scale_file is not None:
+        return _scale_from_file(args.scale_file), f"mm_per_px from {args.scale_file}"
+    if args.known_length is not None:
+        mm_per_px = scale_from_known_length(args.known_length, args.between, undistort_points)
+        where = " (undistorted)" if undistort_points is not None else ""
+        return mm_per_px, f"known length {args.known_length} mm between {args.between}{where}"
+    if args.mm_per_px is not None:
+        return args.mm_per_px, "--mm-per-px"
+    return float("nan"), "none (mm columns are NaN)"
+
+
+def _parse_frames(text: str | None) -> tuple[int, int | None] | None:
+    if text is None:
+        return None
+    start_text, sep, stop_text = text.partition(":")
+    try:
+        start = int(start_text) if start_text else 0
+        stop = int(stop_text) if stop_text else None
+    except ValueError:
+        start, stop = -1, None
+    if not sep or start < 0 or (stop is not None and stop <= start):
+        raise InputError(f"--frames {text!r} is not START:END with 0 <= START < END (END exclusive, "
+                         "may be left out for 'to the end'), e.g. 0:300")
+    return start, stop
+
+
+def _check_measure_options(args: argparse.Namespace) -> None:
+    if not 0 <= args.threshold_ratio:
+        raise InputError(f"--threshold-ratio {args.threshold_ratio} is negative: pass a fraction >= 0")
+    if not -1 <= args.mcr_threshold <= 1:
+        raise InputError(f"--mcr-threshold {args.mcr_threshold} is outside [-1, 1]: it is a correlation")
+
+
+def _output_names(args: argparse.Namespace) -> list[Path]:
+    """The files a run writes, in writing order (the CSV last); checked before any work."""
+    raw, poi_tracks = getattr(args, "raw_tracks", None), args.save_poi_tracks
+    names = ([Path(raw)] if raw else []) + ([Path(poi_tracks)] if poi_tracks else []) \
+        + ([Path(args.out).with_suffix(".json"), Path(args.out)] if args.out else [])
+    if len({name.resolve() for name in names}) != len(names):
+        raise InputError(f"two outputs share a name ({', '.join(map(str, names))}): give each its own file")
+    return names
+
+
+def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], notes: list[str],
+                   mm_per_px: float, scale_source: str, started: float) -> Any:
+    """Filter, average and write the run's outputs as one all-or-nothing set.
+
+    Every file is written to a temporary name; only when all are complete are they
+    renamed (the CSV last), so a failure or Ctrl-C leaves none of them.
+    """
+    from flow import track
+
+    raw = getattr(args, "raw_tracks", None)
+    sparse = run["method_kind"] == "sparse"
+    result = None
+    sidecar: dict[str, Any] = {}
+    if args.out:
+        filter_mode = args.filter or ("none" if sparse else "paper")
+        result = track.measure(tracks, filter_enabled=filter_mode != "none",
+                               average="median" if filter_mode == "median" else "mean",
+                               threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
+                               # KLT mixes background and structure features by design (the paper's
+                               # baseline): their disagreement is no sign of a blocked view
+                               check_coherence=not sparse)
+        n_valid = int(result.valid.sum())
+        sidecar = {
+            **{k: v for k, v in run.items() if k not in ("identity", "timings")},
+            "scale": {"mm_per_px": _finite_or_none(mm_per_px), "source": scale_source},
+            "filter": {"mode": filter_mode, "threshold_ratio": args.threshold_ratio,
+                       "threshold_px": result.filtered.threshold_px, "mcr_threshold": args.mcr_threshold},
+            "quality": {"frames_valid": n_valid, "frames_invalid": int(len(result.valid) - n_valid),
+                        "residual_threshold": _finite_or_none(result.residual_threshold),
+                        "consistency_band_px": _finite_or_none(result.consistency_band_px)},
+            "units": {"time_s": "s", "dx_px": "px, + = image right", "dy_px": "px, + = image down",
+                      "dx_mm": "mm", "dy_mm": "mm", "residual": "grey levels (0-255)",
+                      "flow_spread_px": "px (1.4826 MAD over kept POIs)",
+                      "poi_kept_frac": "fraction of kept POIs measured and consistent with the frame's median"},
+            "columns": list(CSV_COLUMNS),
+            "notes": notes + result.filtered.notes,
+            "versions": versions(),
+            "timings": {**run.get("timings", {}), "total_s": time.perf_counter() - started},
+        }
+        sidecar["poi"] = {**run["poi"], "kept_after_filter": int(result.filtered.kept.sum()),
+                          "kept_after_eq10": int(result.filtered.kept_threshold.sum())}
+    sidecar_text = json_text(sidecar) if args.out else ""  # a bad value fails before any file exists
+    with atomic_paths(*_output_names(args)) as temporaries:
+        pending = list(temporaries)
+        if raw:
+            track.save_raw_tracks(pending.pop(0), tracks, {**run, "notes": notes, "versions": versions()})
+        if args.save_poi_tracks:
+            roi = run["roi"]
+            track.write_npz(pending.pop(0), {
+                "frame": tracks.frame, "time_s": tracks.time_s, "dx_px": tracks.dx, "dy_px": tracks.dy,
+                "x_px": tracks.x_px + roi["x"], "y_px": tracks.y_px + roi["y"], "valid": result.valid,
+                "kept": result.filtered.kept, "mcr": result.filtered.mcr, "residual": tracks.residual,
+                "offset_dx_px": tracks.offset_dx, "offset_dy_px": tracks.offset_dy}, compress=True)
+        if args.out:
+            pending.pop(0).write_text(sidecar_text)
+            with pending.pop(0).open("w", newline="") as handle:
+                writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
+                writer.writeheader()
+                for row in track.iter_rows(result, mm_per_px):
+                    writer.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in row.items()})
+    return result
+
+
+def _calibration_summary(args: argparse.Namespace, calibration: dict[str, Any] | None) -> dict[str, Any] | None:
+    if calibration is None:
+        return None
+    return {"file": str(args.calibration), "rms_px": calibration.get("rms_px"),
+            "camera_matrix": calibration["camera_matrix"], "dist_coeffs": calibration["dist_coeffs"]}
+
+
 def cmd_track(args: argparse.Namespace) -> int:
     from flow import poi, track
-    from flow.calibration import scale_from_known_length
 
     started = time.perf_counter()
     notes: list[str] = []
@@ -138,104 +292,115 @@ def cmd_track(args: argparse.Namespace) -> int:
     if name not in registry.available():
         raise InputError(f"unknown method {name!r}; available: {', '.join(registry.available())} "
                          "(see `refflow methods`)")
-    _positive("--mm-per-px", args.mm_per_px)
-    given = [args.mm_per_px is not None, args.known_length is not None, args.scale_file is not None]
-    if sum(given) > 1:
-        raise InputError("pass one scale: --mm-per-px, --known-length/--between or --scale-file")
-    if args.scale_file is not None:
-        mm_per_px = _scale_from_file(args.scale_file)
-        scale_source = f"mm_per_px from {args.scale_file}"
-    elif args.known_length is not None or args.between is not None:
-        if args.known_length is None or args.between is None:
-            raise InputError("--known-length needs --between X1,Y1,X2,Y2 (and vice versa)")
-        mm_per_px = scale_from_known_length(args.known_length, args.between)
-        scale_source = f"known length {args.known_length} mm between {args.between}"
-    elif args.mm_per_px is not None:
-        mm_per_px, scale_source = args.mm_per_px, "--mm-per-px"
-    else:
-        mm_per_px, scale_source = float("nan"), "none (mm columns are NaN)"
-        notes.append("no scale given: pass --mm-per-px or --known-length/--between for mm")
+    _check_scale_options(args)
+    _check_measure_options(args)
+    _positive("--fps", args.fps, "the camera frame rate in frames per second")
     if args.max_frames is not None and args.max_frames < 1:
         raise InputError(f"--max-frames {args.max_frames} must be >= 1")
+    if args.jobs < 1:
+        raise InputError(f"--jobs {args.jobs} must be >= 1")
+    if not args.out and not args.raw_tracks:
+        raise InputError("nothing to write: pass --out CSV (measurement) and/or --raw-tracks NPZ (unfiltered part)")
+    if args.save_poi_tracks and not args.out:
+        raise InputError("--save-poi-tracks records the filtered measurement: pass --out CSV too "
+                         "(--raw-tracks alone keeps the unfiltered tracks)")
+    frames = _parse_frames(args.frames)
     params = _method_params(args, name)
-    try:
-        method = registry.get_method(name, **params)
-    except TypeError as err:
-        raise InputError(f"bad --param for {name}: {err}") from None
-    source = _open(args)
-    mask = _mask_for(args, source)
-    poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
-    undistort, calibration = _undistorter(args, source)
-    out = Path(args.out)
+    method = _build_method(name, params)
     sparse = getattr(method, "kind", "dense") == "sparse"
-    filter_mode = args.filter or ("none" if sparse else "paper")
+    if sparse and frames is not None:
+        raise InputError(f"--frames needs a reference-frame (dense) method: {name} follows its features "
+                         "from frame to frame, so its run cannot be split")
+    _output_names(args)
+    source = _open(args)
+    undistort, calibration = _undistorter(args, source)
+    mm_per_px, scale_source = _scale(args, undistort.undistort_points if undistort is not None else None)
+    mask = _mask_for(args, source, undistort)
+    poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
+    # The per-POI store goes beside the output: a real disk, unlike a memory-backed /tmp.
+    store_dir = Path(args.out or args.raw_tracks).resolve().parent
+    store_dir = store_dir if store_dir.is_dir() else None
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         if sparse:
             tracks = track.track_sparse(source, method, mask, reference_frame=args.reference_frame,
                                         max_frames=args.max_frames, undistort=undistort,
-                                        progress=not args.no_progress)
+                                        progress=not args.no_progress, store_dir=store_dir)
         else:
-            tracks = track.track_dense(source, lambda: registry.get_method(name, **params), poi_xy,
+            tracks = track.track_dense(source, lambda: _build_method(name, params), poi_xy,
                                        reference_frame=args.reference_frame, jobs=args.jobs,
-                                       max_frames=args.max_frames, undistort=undistort,
-                                       progress=not args.no_progress)
+                                       max_frames=args.max_frames, frames=frames, undistort=undistort,
+                                       progress=not args.no_progress, store_dir=store_dir)
+    notes.extend(source.notes)
     for warning in caught:
         notes.append(str(warning.message))
         print(f"refflow track: warning: {warning.message}", file=sys.stderr)
-    result = track.measure(tracks, filter_enabled=filter_mode != "none",
-                           average="median" if filter_mode == "median" else "mean",
-                           threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
-                           # KLT mixes background and structure features by design (the paper's
-                           # baseline): their disagreement is no sign of a blocked view
-                           check_coherence=not sparse)
-    notes.extend(result.filtered.notes)
-
+    if scale_source.startswith("none"):
+        notes.append("no scale given: pass --mm-per-px or --known-length/--between for mm")
     roi = source.roi
-    with atomic_path(out) as tmp, tmp.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
-        writer.writeheader()
-        for row in track.iter_rows(result, mm_per_px):
-            writer.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in row.items()})
-    if args.save_poi_tracks:
-        with atomic_path(args.save_poi_tracks) as tmp:
-            np.savez_compressed(
-                tmp, frame=tracks.frame, time_s=tracks.time_s, dx_px=tracks.dx, dy_px=tracks.dy,
-                x_px=tracks.x_px + roi.x, y_px=tracks.y_px + roi.y, valid=result.valid,
-                kept=result.filtered.kept, mcr=result.filtered.mcr, residual=tracks.residual)
-    n_valid = int(result.valid.sum())
-    sidecar = {
+    calibration_info = _calibration_summary(args, calibration)
+    poi_info = {"count": int(len(tracks.x_px)), "source": "features" if sparse else "mask",
+                "mask_pixels": int(mask.sum()), "grid_step": args.grid_step}
+    run = {
         "tool": "refflow track",
-        "input": {"path": str(args.input), "frame_size": list(source.size), "fps": source.fps,
+        "input": {"path": str(args.input), "frame_size": list(source.size), "fps": _finite_or_none(source.fps),
                   "header_frames": tracks.header_frames, "frames_decoded": source.frames_read,
                   "frames_measured": len(tracks.frame), "truncated": tracks.truncated},
+        "frames": {"first": int(tracks.frame[0]), "stop": int(tracks.frame[-1]) + 1, "requested": args.frames},
         "method": name, "method_kind": "sparse" if sparse else "dense", "parameters": method.params(),
         "reference_frame": args.reference_frame, "jobs": args.jobs if not sparse else 1,
-        "roi": roi.as_dict(),
-        "scale": {"mm_per_px": mm_per_px if math.isfinite(mm_per_px) else None, "source": scale_source},
-        "calibration": None if calibration is None else {
-            "file": str(args.calibration), "rms_px": calibration.get("rms_px"),
-            "camera_matrix": calibration["camera_matrix"], "dist_coeffs": calibration["dist_coeffs"]},
-        "poi": {"count": int(len(tracks.x_px)), "source": "features" if sparse else "mask",
-                "mask_pixels": int(mask.sum()), "grid_step": args.grid_step,
-                "kept_after_filter": int(result.filtered.kept.sum()),
-                "kept_after_eq10": int(result.filtered.kept_threshold.sum())},
-        "filter": {"mode": filter_mode, "threshold_ratio": args.threshold_ratio,
-                   "threshold_px": result.filtered.threshold_px, "mcr_threshold": args.mcr_threshold},
-        "quality": {"frames_valid": n_valid, "frames_invalid": int(len(result.valid) - n_valid),
-                    "residual_threshold": result.residual_threshold},
-        "units": {"time_s": "s", "dx_px": "px, + = image right", "dy_px": "px, + = image down",
-                  "dx_mm": "mm", "dy_mm": "mm", "residual": "grey levels (0-255)",
-                  "flow_spread_px": "px (1.4826 MAD over kept POIs)", "poi_kept_frac": "fraction"},
-        "columns": list(CSV_COLUMNS),
-        "notes": notes,
-        "versions": versions(),
-        "timings": {**tracks.timings_s, "total_s": time.perf_counter() - started},
+        "roi": roi.as_dict(), "calibration": calibration_info, "poi": poi_info,
+        "timings": tracks.timings_s,
+        # What every part of one run shares; `refflow merge` refuses parts that differ.
+        "identity": {"method": name, "parameters": method.params(), "reference_frame": args.reference_frame,
+                     "reference_digest": tracks.reference_digest, "roi": roi.as_dict(),
+                     "frame_size": list(source.size), "header_frames": tracks.header_frames,
+                     "calibration": calibration_info, "poi": poi_info},
     }
-    write_json(out.with_suffix(".json"), sidecar)
-    print(f"refflow track: {name}: {len(tracks.frame)} frames, {len(tracks.x_px)} POIs "
-          f"({int(result.filtered.kept.sum())} kept), {n_valid} valid -> {out}", file=sys.stderr)
+    result = _write_outputs(args, tracks, run, notes, mm_per_px, scale_source, started)
+    written = [p for p in (args.raw_tracks, args.out) if p]
+    kept = f" ({int(result.filtered.kept.sum())} kept), {int(result.valid.sum())} valid" if result else ""
+    print(f"refflow track: {name}: {len(tracks.frame)} frames, {len(tracks.x_px)} POIs{kept} -> "
+          f"{', '.join(written)}", file=sys.stderr)
+    return 0
+
+
+def cmd_merge(args: argparse.Namespace) -> int:
+    from flow import track
+
+    started = time.perf_counter()
+    _check_scale_options(args)
+    _check_measure_options(args)
+    _output_names(args)
+    store_dir = Path(args.out).resolve().parent
+    tracks, metas = track.load_raw_tracks(args.parts, store_dir=store_dir if store_dir.is_dir() else None)
+    first = metas[0]
+    undistort_points = None
+    if first["calibration"] is not None and args.known_length is not None:
+        from flow.calibration import Undistorter
+
+        # --between is in raw video pixels, like in `track`; the parts were measured undistorted.
+        roi = Roi(**first["roi"])
+        undistort_points = Undistorter(first["calibration"] | {"image_size": first["input"]["frame_size"]},
+                                       roi, tuple(first["input"]["frame_size"])).undistort_points
+    mm_per_px, scale_source = _scale(args, undistort_points)
+    notes = [note for meta in metas for note in meta.get("notes", []) if "no scale given" not in note]
+    if scale_source.startswith("none"):
+        notes.append("no scale given: pass --mm-per-px or --known-length/--between for mm")
+    run = {**first, "tool": "refflow merge",
+           "input": {**first["input"], "frames_decoded": max(m["input"]["frames_decoded"] for m in metas),
+                     "frames_measured": len(tracks.frame), "truncated": tracks.truncated},
+           "frames": {"first": int(tracks.frame[0]), "stop": int(tracks.frame[-1]) + 1, "requested": None},
+           "parts": [{"file": str(p), "frames": [m["frames"]["first"], m["frames"]["stop"]]}
+                     for p, m in zip(args.parts, metas, strict=True)],
+           "timings": tracks.timings_s}
+    run.pop("notes", None)
+    run.pop("versions", None)
+    result = _write_outputs(args, tracks, run, notes, mm_per_px, scale_source, started)
+    print(f"refflow merge: {len(metas)} parts, {len(tracks.frame)} frames, {len(tracks.x_px)} POIs "
+          f"({int(result.filtered.kept.sum())} kept), {int(result.valid.sum())} valid -> {args.out}",
+          file=sys.stderr)
     return 0
 
 
@@ -243,7 +408,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from flow.calibration import calibrate, parse_board
 
     result = calibrate(args.input, board=parse_board(args.board), square_mm=args.square_mm,
-                       fix_k3=not args.with_k3)
+                       fix_k3=not args.with_k3, step=args.step, max_views=args.max_views)
     result["versions"] = versions()
     write_json(args.out, result)
     print(f"refflow calibrate: {result['views_used']} views, RMS {result['rms_px']:.3f} px -> {args.out}",
@@ -257,29 +422,76 @@ def cmd_pois(args: argparse.Namespace) -> int:
     from flow.methods.klt import KLT
     from flow.track import read_reference
 
-    source = _open(args)
-    mask = _mask_for(args, source)
-    poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
+    source = _open(args, need_time=False)
     undistort, _ = _undistorter(args, source)
+    mask = _mask_for(args, source, undistort)
+    poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
     reference = read_reference(source, args.reference_frame, undistort)
     corners = KLT(detector=args.detector).detect(reference)
     poi_figure(reference, poi_xy, corners, args.out)
-    inside = int(sum(mask[int(round(y)), int(round(x))] for x, y in corners
-                     if 0 <= round(y) < mask.shape[0] and 0 <= round(x) < mask.shape[1]))
-    print(f"POIs: {len(poi_xy)}; {args.detector} corners in ROI: {len(corners)} ({inside} on the mask) -> {args.out}")
+    cells = np.round(corners).astype(int).reshape(-1, 2)
+    inside = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < mask.shape[1]) & (cells[:, 1] < mask.shape[0])
+    on_mask = int(mask[cells[inside, 1], cells[inside, 0]].sum())
+    print(f"POIs: {len(poi_xy)}; {args.detector} corners in ROI: {len(corners)} ({on_mask} on the mask) "
+          f"-> {args.out}")
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from flow.figures import read_measurement, spectrum_figure
+
+    labels = args.label or []
+    if labels and len(labels) != len(args.csv):
+        raise InputError(f"--label given {len(labels)} times for {len(args.csv)} CSV files: one per file or none")
+    _positive("--min-hz", args.min_hz, "a frequency in Hz")
+    measured = [read_measurement(path) for path in args.csv]
+    units = args.units
+    if units == "auto":
+        units = "mm" if all(m["has_mm"] for m in measured) else "px"
+    series = {}
+    for i, (path, data) in enumerate(zip(args.csv, measured, strict=True)):
+        if units == "mm" and not data["has_mm"]:
+            raise InputError(f"{path} has no mm columns (tracked without a scale): use --units px")
+        label = labels[i] if labels else data["label"]
+        if label in series:
+            label = f"{label} ({Path(path).stem})"
+        series[label] = (data["time_s"], data[f"dx_{units}"], data[f"dy_{units}"])
+    summary = spectrum_figure(series, args.out, units=units, title=args.title or "", min_hz=args.min_hz)
+    for label, peaks in summary.items():
+        found = ", ".join(f"{axis} {hz:.3f} Hz" for axis, hz in peaks.items() if axis != "main" and hz is not None)
+        print(f"{label}: dominant frequency {found or 'n/a'} (spectra plotted: {peaks['main']})")
+    print(f"-> {args.out}")
     return 0
 
 
 def _add_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="video file (any format OpenCV reads) or folder of images")
-    p.add_argument("--roi", help="crop X,Y,W,H in full-frame pixels (4K frames are never processed whole)")
-    p.add_argument("--fps", type=float, help="frame rate of an image folder (videos: from the file)")
-    p.add_argument("--calibration", help="calibration JSON from `refflow calibrate`; frames are undistorted")
-    p.add_argument("--mask", help="binary mask PNG (full-frame or ROI size), white = POI")
-    p.add_argument("--rect", help="POIs in rectangle X,Y,W,H (full-frame pixels)")
-    p.add_argument("--polygon", help="POIs in polygon X1,Y1,X2,Y2,... (full-frame pixels)")
+    p.add_argument("--roi", help="crop X,Y,W,H in raw full-frame pixels (4K frames are never processed whole)")
+    p.add_argument("--fps", type=float, help="frame rate of an image folder (required there; videos: from the file)")
+    p.add_argument("--calibration", help="calibration JSON from `refflow calibrate`: frames are undistorted, "
+                   "and the mask/--rect/--polygon/--between drawn on raw frames are carried along")
+    p.add_argument("--mask", help="binary mask PNG (full-frame or ROI size, raw video pixels), white = POI")
+    p.add_argument("--rect", help="POIs in rectangle X,Y,W,H (raw full-frame pixels)")
+    p.add_argument("--polygon", help="POIs in polygon X1,Y1,X2,Y2,... (raw full-frame pixels)")
     p.add_argument("--grid-step", type=int, default=1, help="keep every N-th mask pixel in x and y")
     p.add_argument("--reference-frame", type=int, default=0, help="index of the fixed reference frame")
+
+
+def _add_measure_options(p: argparse.ArgumentParser, *, out_required: bool) -> None:
+    p.add_argument("--out", required=out_required,
+                   help="output CSV; a JSON sidecar is written beside it")
+    p.add_argument("--mm-per-px", type=float, help="image scale at the structure, mm per pixel")
+    p.add_argument("--known-length", type=float, help="known length in mm between the --between points")
+    p.add_argument("--between", help="X1,Y1,X2,Y2 raw image points spanning --known-length")
+    p.add_argument("--scale-file", help="JSON file holding a positive 'mm_per_px'")
+    p.add_argument("--save-poi-tracks", help="write the per-POI displacement matrix to this .npz")
+    p.add_argument("--filter", choices=("paper", "median", "none"),
+                   help="paper: eq. 10-12 (default for dense); median: same filters, median average; "
+                        "none: plain average (default for KLT, as in the paper)")
+    p.add_argument("--threshold-ratio", type=float, default=0.5,
+                   help="eq. 10 threshold as a fraction of the median POI peak |d| (default 0.5)")
+    p.add_argument("--mcr-threshold", type=float, default=0.5,
+                   help="eq. 11 threshold on the mean cross-correlation (default 0.5)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -294,29 +506,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", help="method name (default: deepflow, else deepflow-opencv); see `refflow methods`")
     p.add_argument("--preset", choices=("ultrafast", "fast", "medium"), help="DIS preset")
     p.add_argument("--param", action="append", metavar="KEY=VALUE", help="method parameter (repeatable)")
-    p.add_argument("--mm-per-px", type=float, help="image scale at the structure, mm per pixel")
-    p.add_argument("--known-length", type=float, help="known length in mm between the --between points")
-    p.add_argument("--between", help="X1,Y1,X2,Y2 image points spanning --known-length")
-    p.add_argument("--scale-file", help="JSON file holding a positive 'mm_per_px'")
-    p.add_argument("--out", required=True, help="output CSV; a JSON sidecar is written beside it")
+    _add_measure_options(p, out_required=False)
     p.add_argument("--jobs", type=int, default=1, help="frames measured in parallel (dense methods)")
-    p.add_argument("--max-frames", type=int, help="stop after this many frames")
-    p.add_argument("--save-poi-tracks", help="write the per-POI displacement matrix to this .npz")
-    p.add_argument("--filter", choices=("paper", "median", "none"),
-                   help="paper: eq. 10-12 (default for dense); median: same filters, median average; "
-                        "none: plain average (default for KLT, as in the paper)")
-    p.add_argument("--threshold-ratio", type=float, default=0.5,
-                   help="eq. 10 threshold as a fraction of the median POI peak |d| (default 0.5)")
-    p.add_argument("--mcr-threshold", type=float, default=0.5,
-                   help="eq. 11 threshold on the mean cross-correlation (default 0.5)")
+    p.add_argument("--max-frames", type=int, help="stop before this frame index")
+    p.add_argument("--frames", metavar="START:END",
+                   help="measure frames START..END-1 only (dense methods; the reference frame may lie outside)")
+    p.add_argument("--raw-tracks", metavar="NPZ",
+                   help="write the unfiltered per-POI tracks of the measured frames, for `refflow merge`")
+    p.add_argument("--allow-truncated", action="store_true",
+                   help="measure the frames of a truncated video that decode (default: refuse it)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_track)
 
-    p = sub.add_parser("calibrate", help="intrinsics and distortion from checkerboard views")
+    p = sub.add_parser("merge", help="join raw-tracks parts (track --frames ... --raw-tracks) into one measurement")
+    p.add_argument("parts", nargs="+", help="raw-tracks .npz files of one run, contiguous frame ranges")
+    _add_measure_options(p, out_required=True)
+    p.set_defaults(func=cmd_merge)
+
+    p = sub.add_parser("calibrate", help="intrinsics and distortion from checkerboard images or a video")
     p.add_argument("input", help="folder of images or a video of the board")
     p.add_argument("--board", required=True, help="inner corners COLSxROWS, e.g. 9x6")
     p.add_argument("--square-mm", type=float, required=True, help="square side in mm")
     p.add_argument("--with-k3", action="store_true", help="also estimate k3 (default: k3 = 0)")
+    p.add_argument("--step", type=int, default=1, help="try every N-th frame (videos)")
+    p.add_argument("--max-views", type=int, default=60, help="use at most this many views, evenly spread")
     p.add_argument("--out", required=True, help="calibration JSON")
     p.set_defaults(func=cmd_calibrate)
 
@@ -325,6 +538,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--detector", choices=("harris", "shi-tomasi"), default="harris")
     p.add_argument("--out", required=True, help="output PNG")
     p.set_defaults(func=cmd_pois)
+
+    p = sub.add_parser("plot", help="time history and spectrum of measured CSVs, dominant frequency marked")
+    p.add_argument("csv", nargs="+", help="CSV files of `refflow track` (several methods are overlaid)")
+    p.add_argument("--out", required=True, help="output PNG")
+    p.add_argument("--label", action="append", help="legend label per CSV (default: the method in its sidecar)")
+    p.add_argument("--units", choices=("auto", "px", "mm"), default="auto",
+                   help="auto: mm where every CSV has a scale, else px")
+    p.add_argument("--min-hz", type=float, help="ignore peaks below this frequency (default: one cycle per record)")
+    p.add_argument("--title", help="figure title")
+    p.set_defaults(func=cmd_plot)
     return parser
 
 
@@ -333,10 +556,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (InputError, ValueError) as err:
+    except InputError as err:
         print(f"refflow {args.command}: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as err:
+        # Files the user named that cannot be read or written (permissions, full disk).
         print(f"refflow {args.command}: error: {err.strerror or err}: "
               f"{err.filename or ''} (check the path and permissions)", file=sys.stderr)
         return EXIT_USAGE

@@ -1,12 +1,22 @@
-"""POI versus corner figure (paper Fig. 6): what the mask selects and what KLT would track."""
+"""Figures of the measurement tool.
+
+POI versus corner figure (paper Fig. 6): what the mask selects and what KLT
+would track; time history and spectrum of measured CSVs (``refflow plot``),
+with each series' dominant frequency.
+"""
 
 from __future__ import annotations
 
+import csv
+import json
+import math
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
+from flow.io import InputError
 from refflow.io import atomic_path
 
 
@@ -36,27 +46,142 @@ def poi_figure(reference: np.ndarray, poi_xy: np.ndarray, corners_xy: np.ndarray
             raise OSError(f"cannot write {path}")
 
 
-def displacement_plot(series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], path: str | Path,
-                      *, title: str = "", ylabel: str = "displacement (px)") -> None:
-    """Plot displacement time series ``{label: (time_s, dx, dy)}`` (needs matplotlib)."""
+def read_measurement(path: str | Path) -> dict[str, Any]:
+    """Columns of a ``refflow track`` CSV, invalid frames as NaN, and its method (from the sidecar).
+
+    Returns ``time_s``, ``dx_px``, ``dy_px``, ``dx_mm``, ``dy_mm`` arrays,
+    ``has_mm`` (a scale was given) and ``label``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"CSV {str(path)!r} does not exist: pass the --out of `refflow track`")
+    with path.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        missing = {"time_s", "dx_px", "dy_px", "valid"} - set(reader.fieldnames or [])
+        if missing:
+            raise InputError(f"{str(path)!r} is not a `refflow track` CSV (no {', '.join(sorted(missing))} column)")
+        rows = list(reader)
+    if len(rows) < 4:
+        raise InputError(f"{str(path)!r} has {len(rows)} frames: a spectrum needs at least 4")
+    data: dict[str, Any] = {}
+    valid = np.array([row["valid"] == "1" for row in rows])
+    for column in ("time_s", "dx_px", "dy_px", "dx_mm", "dy_mm"):
+        values = np.array([float(row.get(column) or "nan") for row in rows])
+        data[column] = values if column == "time_s" else np.where(valid, values, np.nan)
+    data["has_mm"] = bool(np.isfinite(data["dx_mm"]).any())
+    label = path.stem
+    sidecar = path.with_suffix(".json")
+    if sidecar.is_file():
+        try:
+            label = json.loads(sidecar.read_text()).get("method", label)
+        except (OSError, ValueError):
+            pass  # the label is cosmetic; the CSV itself was read
+    data["label"] = label
+    return data
+
+
+def resample_uniform(time_s: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Samples on a uniform clock (median frame interval), gaps (NaN) linearly bridged.
+
+    Variable-frame-rate videos and invalid frames both leave the series uneven;
+    an FFT needs even samples.
+    """
+    ok = np.isfinite(time_s) & np.isfinite(values)
+    if ok.sum() < 4:
+        return np.zeros(0), np.zeros(0)
+    t, v = time_s[ok], values[ok]
+    steps = np.diff(time_s[np.isfinite(time_s)])
+    dt = float(np.median(steps[steps > 0])) if (steps > 0).any() else 1.0
+    grid = np.arange(t[0], t[-1] + dt / 2, dt)
+    return grid, np.interp(grid, t, v)
+
+
+def dominant_frequency(time_s: np.ndarray, values: np.ndarray, *,
+                       min_hz: float | None = None) -> tuple[float | None, np.ndarray, np.ndarray]:
+    """Frequency (Hz) of the largest spectral peak of a displacement series.
+
+    The series is put on a uniform clock, detrended (a linear drift such as
+    KLT's would otherwise dominate the lowest bins), Hann-windowed and
+    zero-padded 8x; the peak is refined by a parabola through its three bins.
+    Peaks below ``min_hz`` (default: one cycle per record, which cannot be
+    called periodic) are ignored. Returns ``(f_hz or None, freqs_hz, amplitude)``.
+    """
+    grid, samples = resample_uniform(np.asarray(time_s, float), np.asarray(values, float))
+    if grid.size < 4:
+        return None, np.zeros(0), np.zeros(0)
+    dt = grid[1] - grid[0]
+    samples = samples - np.polyval(np.polyfit(grid - grid[0], samples, 1), grid - grid[0])
+    window = np.hanning(samples.size)
+    n_fft = 8 * int(2 ** math.ceil(math.log2(samples.size)))
+    amplitude = np.abs(np.fft.rfft(samples * window, n_fft)) * 2 / window.sum()
+    freqs = np.fft.rfftfreq(n_fft, dt)
+    floor = min_hz if min_hz is not None else 1.0 / (samples.size * dt)
+    search = np.flatnonzero(freqs >= floor)
+    if search.size < 3:
+        return None, freqs, amplitude
+    k = int(search[np.argmax(amplitude[search])])
+    if 0 < k < len(amplitude) - 1:
+        a, b, c = np.log(amplitude[k - 1:k + 2] + 1e-300)
+        shift = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else 0.0
+    else:
+        shift = 0.0
+    return float(freqs[k] + shift * (freqs[1] - freqs[0])), freqs, amplitude
+
+
+def spectrum_figure(series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], path: str | Path, *,
+                    units: str = "px", title: str = "", min_hz: float | None = None) -> dict[str, dict[str, Any]]:
+    """Time histories (dx, dy) and amplitude spectra of ``{label: (time_s, dx, dy)}``, overlaid.
+
+    The spectra are of one axis for every series, so they compare: the axis
+    along which the first series moves most (larger standard deviation). Each
+    series' dominant frequency on that axis is marked. Returns, per label,
+    ``{"dx": Hz, "dy": Hz, "main": "dx" | "dy"}`` (None where no peak).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True)
-    for label, (time_s, dx, dy) in series.items():
-        axes[0].plot(time_s, dx, label=label, lw=1.2)
-        axes[1].plot(time_s, dy, label=label, lw=1.2)
-    axes[0].set_ylabel(f"dx {ylabel}")
-    axes[1].set_ylabel(f"dy {ylabel}")
+    fig, axes = plt.subplots(3, 1, figsize=(9, 8))
+    summary: dict[str, dict[str, Any]] = {}
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    _, first_dx, first_dy = next(iter(series.values()))
+    with np.errstate(all="ignore"):
+        main = "dx" if np.nanstd(first_dx) >= np.nanstd(first_dy) else "dy"
+    for i, (label, (time_s, dx, dy)) in enumerate(series.items()):
+        colour = colours[i % len(colours)]
+        axes[0].plot(time_s, dx, lw=1.1, color=colour, label=label)
+        axes[1].plot(time_s, dy, lw=1.1, color=colour, label=label)
+        peaks: dict[str, Any] = {}
+        spectra = {}
+        for axis, values in (("dx", dx), ("dy", dy)):
+            peaks[axis], freqs, amplitude = dominant_frequency(time_s, values, min_hz=min_hz)
+            spectra[axis] = (freqs, amplitude)
+        peaks["main"] = main
+        summary[label] = peaks
+        freqs, amplitude = spectra[main]
+        if freqs.size:
+            axes[2].plot(freqs, amplitude, lw=1.1, color=colour, label=label)
+        if peaks[main] is not None:
+            axes[2].axvline(peaks[main], color=colour, ls="--", lw=0.9)
+            axes[2].annotate(f"{peaks[main]:.3f} Hz", (peaks[main], 0.92 - 0.08 * i), xycoords=("data", "axes fraction"),
+                             color=colour, fontsize=9, xytext=(4, 0), textcoords="offset points")
+    axes[0].set_ylabel(f"dx ({units})")
+    axes[1].set_ylabel(f"dy ({units})")
     axes[1].set_xlabel("time (s)")
-    axes[0].legend(loc="upper right", fontsize=8)
+    axes[2].set_xlabel("frequency (Hz)")
+    axes[2].set_ylabel(f"{main} amplitude ({units})")
+    # Show the band around the peaks rather than all the way to Nyquist, where nothing is.
+    nyquist = min(0.5 / float(np.median(np.diff(t))) for t, _, _ in series.values())
+    found = [p[p["main"]] for p in summary.values() if p[p["main"]] is not None]
+    axes[2].set_xlim(0, min(nyquist, max(2.0, 4 * max(found))) if found else nyquist)
     for ax in axes:
         ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize=8)
     if title:
         axes[0].set_title(title)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120)
     plt.close(fig)
+    return summary

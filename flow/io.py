@@ -2,11 +2,19 @@
 
 Frames come out one at a time as grey ROI crops with their true timestamps,
 so memory stays constant whatever the clip length or sensor size.
+
+A video that cannot be measured whole is an error, not a warning: a file
+that OpenCV cannot open is diagnosed with the ffmpeg of ``imageio-ffmpeg``
+(no frames at all, or not a video), and a file that stops decoding well
+before its container's duration is truncated (see :class:`FrameSource`).
 """
 
 from __future__ import annotations
 
 import math
+import os
+import re
+import subprocess
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -67,6 +75,76 @@ def to_grey(image: np.ndarray) -> np.ndarray:
     return image
 
 
+def quiet_decoder_logs() -> None:
+    """Keep OpenCV's ffmpeg backend from printing its own error lines on stderr.
+
+    refflow diagnoses unreadable files itself and reports one line; ffmpeg's
+    multi-line noise would bury it. Must run before the first ``VideoCapture``
+    of the process (OpenCV reads the variable once). A value the user exported
+    (to debug a file) is kept.
+    """
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+
+
+def _ffmpeg_report(path: Path) -> tuple[str | None, int | None]:
+    """What ffmpeg sees in ``path``: ``(stderr of opening it, video packets)``.
+
+    ``(None, None)`` when the ffmpeg of imageio-ffmpeg is not available;
+    packets is None when the file has no video stream or cannot be opened.
+    """
+    try:
+        import imageio_ffmpeg
+
+        exe = imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError):
+        return None, None
+    try:
+        opened = subprocess.run([exe, "-nostdin", "-hide_banner", "-i", str(path)],
+                                capture_output=True, text=True, errors="replace", timeout=60)
+        if not re.search(r"Stream #\S+: Video:", opened.stderr):
+            return opened.stderr, None
+        # Count the video packets without decoding: one framecrc line per packet.
+        counted = subprocess.run([exe, "-nostdin", "-v", "error", "-i", str(path), "-map", "0:v:0",
+                                  "-c", "copy", "-f", "framecrc", "-"],
+                                 capture_output=True, text=True, errors="replace", timeout=300)
+    except (OSError, subprocess.TimeoutExpired):
+        return None, None
+    packets = [ln for ln in counted.stdout.splitlines() if ln.strip() and not ln.startswith("#")]
+    return opened.stderr, len(packets)
+
+
+def _starts_like_mp4(path: Path) -> bool:
+    with path.open("rb") as handle:
+        return handle.read(12)[4:8] in (b"ftyp", b"wide", b"mdat", b"free")
+
+
+def diagnose_unreadable(path: Path) -> str:
+    """One-line reason why OpenCV cannot open the video ``path``, and what to do."""
+    name = str(path)
+    if path.stat().st_size == 0:
+        return f"video {name!r} is empty (0 bytes): copy it again from the camera"
+    opened, packets = _ffmpeg_report(path)
+    if opened is not None and "Input #0" in opened:
+        if packets is None:
+            return (f"video {name!r} has no frames: the container holds no video stream; "
+                    "export or record the video again")
+        if packets == 0:
+            return (f"video {name!r} has no frames: the container has a video stream but no frame "
+                    "in it; export or record the video again")
+        return (f"video {name!r} holds {packets} frames that this OpenCV build cannot decode: "
+                "convert it, e.g. `ffmpeg -i IN -c:v libx264 -crf 12 OUT.mp4`")
+    if opened is not None and "moov atom not found" in opened and _starts_like_mp4(path):
+        return (f"video {name!r} is truncated: the MP4/MOV index (moov atom) is missing, as when a "
+                "recording is interrupted or a copy is incomplete; copy it again, or try to "
+                "recover it with a repair tool (e.g. untrunc) and a good file from the same camera")
+    if opened is not None and ("End of file" in opened or "ended prematurely" in opened):
+        return (f"video {name!r} has no frames: the file ends within its header (an interrupted "
+                "recording or an incomplete copy); copy or record it again")
+    return (f"video {name!r} cannot be opened: it is not a video file OpenCV/ffmpeg can read "
+            "(MP4/MOV/MKV/AVI, H.264/HEVC) or it is damaged; pass a video or a folder of images")
+
+
 class FrameSource:
     """Sequential reader of grey ROI frames with timestamps.
 
@@ -77,50 +155,76 @@ class FrameSource:
     roi : Roi, optional
         Crop window in full-sensor pixels; the whole frame if omitted.
     fps : float, optional
-        Frame rate for image folders (required there); for videos it
+        Frame rate of an image folder (required there unless
+        ``require_fps=False``: images carry no timestamps); for videos it
         overrides the header only where the decoder gives no timestamps.
+    require_fps : bool
+        False lets an image folder go without ``fps`` (tools that need no
+        time, e.g. calibration); its ``time_s`` is then the frame index.
+    allow_truncated : bool
+        A video that stops decoding well before its container's duration is
+        truncated: iterating to its end raises :class:`InputError` unless this
+        is True, in which case it warns and the decoded frames stand.
 
-    Iterating yields ``(index, time_s, grey_roi)``. After iteration,
-    ``frames_read`` holds the number of decoded frames and ``truncated``
-    tells whether the video delivered fewer frames than its header claims.
+    Iterating yields ``(index, time_s, grey_roi)``; :meth:`frames` yields a
+    range of them. After iterating to the end, ``frames_read`` holds the number
+    of decoded frames, ``truncated`` whether the file is truncated and
+    ``notes`` what the user should know (e.g. a header frame count that was an
+    estimate, as for variable-frame-rate files).
+
+    Truncation is judged against the container's duration (its frame count
+    over its frame rate, as OpenCV reports them), not against the frame count
+    alone: a variable-frame-rate file's header count is an estimate, and its
+    last frame still ends at the container's duration, whereas a cut file's
+    last decoded frame ends well before it.
     """
 
-    def __init__(self, path: str | Path, *, roi: Roi | None = None, fps: float | None = None) -> None:
+    def __init__(self, path: str | Path, *, roi: Roi | None = None, fps: float | None = None,
+                 require_fps: bool = True, allow_truncated: bool = False) -> None:
         self.path = Path(path)
         if not self.path.exists():
             raise InputError(f"input {str(self.path)!r} does not exist: check the path")
+        if fps is not None and not (math.isfinite(fps) and fps > 0):
+            raise InputError(f"--fps {fps} is not positive: pass the camera frame rate in frames per second")
         self.is_folder = self.path.is_dir()
+        self.allow_truncated = allow_truncated
         self.frames_read = 0
         self.truncated = False
+        self.notes: list[str] = []
+        self.header_fps = float("nan")
         if self.is_folder:
             self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
             if not self._files:
                 raise InputError(f"folder {str(self.path)!r} holds no images ({', '.join(IMAGE_SUFFIXES)})")
+            if fps is None and require_fps:
+                raise InputError(f"folder {str(self.path)!r} is a sequence of images without timestamps: "
+                                 "pass --fps (the camera frame rate)")
             first = cv2.imread(str(self._files[0]), cv2.IMREAD_UNCHANGED)
             if first is None:
                 raise InputError(f"image {str(self._files[0])!r} cannot be read: is it a valid image?")
             self.height, self.width = first.shape[:2]
-            if fps is not None and fps <= 0:
-                raise InputError(f"--fps {fps} is not positive: pass the camera frame rate")
             self.fps = float(fps) if fps else float("nan")
             self.header_frames = len(self._files)
         else:
+            quiet_decoder_logs()
             cap = cv2.VideoCapture(str(self.path))
             if not cap.isOpened():
-                raise InputError(
-                    f"video {str(self.path)!r} cannot be opened by OpenCV: is it a video file "
-                    "(MP4/MOV/MKV/AVI) or a folder of images?")
+                raise InputError(diagnose_unreadable(self.path))
             self.width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
             self.height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
             header_fps = cap.get(cv2.CAP_PROP_FPS)
-            self.fps = float(fps) if fps else (header_fps if header_fps and header_fps > 0 else float("nan"))
+            self.header_fps = header_fps if header_fps and header_fps > 0 else float("nan")
+            self.fps = float(fps) if fps else self.header_fps
             self.header_frames = max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
             ok, first = cap.read()
             cap.release()
             if not ok or first is None:
+                if self.header_frames == 0:
+                    raise InputError(f"video {str(self.path)!r} has no frames: export or record it again")
                 raise InputError(
-                    f"video {str(self.path)!r} has no decodable frame: the file is empty, "
-                    "truncated or in a codec this OpenCV build lacks")
+                    f"video {str(self.path)!r} has no decodable frame although its header lists "
+                    f"{self.header_frames}: the file is truncated, damaged or in a codec this OpenCV "
+                    "build lacks; copy it again or convert it (e.g. to H.264 MP4 with ffmpeg)")
             self.height, self.width = first.shape[:2]
         self.roi = roi if roi is not None else Roi(0, 0, self.width, self.height)
         self.roi.check(self.width, self.height)
@@ -136,14 +240,25 @@ class FrameSource:
         return to_grey(np.ascontiguousarray(image[r.y:r.y + r.height, r.x:r.x + r.width]))
 
     def __iter__(self) -> Iterator[tuple[int, float, np.ndarray]]:
+        return self.frames()
+
+    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, float, np.ndarray]]:
+        """Frames ``start <= index < stop`` (``stop`` None: to the end).
+
+        Frames before ``start`` are still read in order (timestamps and decoding
+        need it) but are not converted; stopping early skips the truncation check.
+        """
         self.frames_read = 0
         if self.is_folder:
-            yield from self._iter_folder()
+            yield from self._iter_folder(start, stop)
         else:
-            yield from self._iter_video()
+            yield from self._iter_video(start, stop)
 
-    def _iter_folder(self) -> Iterator[tuple[int, float, np.ndarray]]:
-        for index, file in enumerate(self._files):
+    def _iter_folder(self, start: int, stop: int | None) -> Iterator[tuple[int, float, np.ndarray]]:
+        for index, file in enumerate(self._files[:stop]):
+            self.frames_read = index + 1
+            if index < start:
+                continue
             image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
             if image is None:
                 raise InputError(f"image {str(file)!r} cannot be read: remove or replace it")
@@ -151,35 +266,70 @@ class FrameSource:
                 raise InputError(
                     f"image {file.name} is {image.shape[1]}x{image.shape[0]} but the first is "
                     f"{self.width}x{self.height}: all images must have the same size")
-            self.frames_read = index + 1
             time_s = index / self.fps if math.isfinite(self.fps) else float(index)
             yield index, time_s, self._crop(image)
 
-    def _iter_video(self) -> Iterator[tuple[int, float, np.ndarray]]:
+    def _time_s(self, cap: cv2.VideoCapture, index: int) -> float:
+        msec = cap.get(cv2.CAP_PROP_POS_MSEC)
+        # Decoders report the presentation time of the frame just read; some give 0
+        # for every frame, so fall back to index/fps unless it advances.
+        if index > 0 and msec <= 0 and math.isfinite(self.fps):
+            return index / self.fps
+        if index == 0 and msec <= 0:
+            return 0.0
+        return msec / 1000.0
+
+    def _iter_video(self, start: int, stop: int | None) -> Iterator[tuple[int, float, np.ndarray]]:
         cap = cv2.VideoCapture(str(self.path))
+        times: list[float] = []  # one float per frame: small next to any frame
         try:
             index = 0
-            while True:
-                ok, image = cap.read()
-                if not ok or image is None:
-                    break
-                msec = cap.get(cv2.CAP_PROP_POS_MSEC)
-                # Decoders report the presentation time of the frame just read; some give 0
-                # for every frame, so fall back to index/fps unless it advances.
-                if index > 0 and msec <= 0 and math.isfinite(self.fps):
-                    time_s = index / self.fps
-                elif index == 0 and msec <= 0:
-                    time_s = 0.0
+            while stop is None or index < stop:
+                if index < start:
+                    ok, image = cap.grab(), None
                 else:
-                    time_s = msec / 1000.0
+                    ok, image = cap.read()
+                    ok = ok and image is not None
+                if not ok:
+                    break
+                time_s = self._time_s(cap, index)
+                times.append(time_s)
                 self.frames_read = index + 1
-                yield index, time_s, self._crop(image)
+                if image is not None:
+                    yield index, time_s, self._crop(image)
                 index += 1
+            else:
+                return  # stopped at ``stop``: what follows is not our concern
         finally:
             cap.release()
-        if self.header_frames and self.frames_read < self.header_frames:
-            self.truncated = True
-            warnings.warn(
-                f"video {self.path.name}: header says {self.header_frames} frames but only "
-                f"{self.frames_read} could be decoded (truncated or damaged file); "
-                f"results cover the {self.frames_read} decoded frames", stacklevel=2)
+        self._check_complete(np.asarray(times))
+
+    def _check_complete(self, times: np.ndarray) -> None:
+        """After the last decodable frame: truncated file, or only a header estimate?"""
+        if not self.header_frames or self.frames_read >= self.header_frames:
+            return
+        steps = np.diff(times)
+        steps = steps[steps > 0]
+        step = float(np.median(steps)) if steps.size else 1.0 / self.header_fps
+        duration = self.header_frames / self.header_fps
+        covered = float(times[-1]) + step if times.size else 0.0
+        # A complete file's last frame ends at the container's duration, give or take a
+        # frame; allow two, of the nominal rate or of the decoded one.
+        slack = 2.0 * max(step, 1.0 / self.header_fps) if math.isfinite(self.header_fps) else math.inf
+        if math.isfinite(duration) and covered >= duration - slack:
+            self.notes.append(
+                f"video {self.path.name}: header estimated {self.header_frames} frames, the file holds "
+                f"{self.frames_read} covering its {duration:.3f} s (variable frame rate)")
+            return
+        self.truncated = True
+        where = (f"decoding stopped at {covered:.3f} s of the container's {duration:.3f} s"
+                 if math.isfinite(duration) else "the frame rate is unknown")
+        if not self.allow_truncated:
+            raise InputError(
+                f"video {str(self.path)!r} is truncated: its header lists {self.header_frames} frames but "
+                f"only {self.frames_read} decode ({where}); copy the file again, or pass "
+                f"--allow-truncated to measure the {self.frames_read} frames that decode")
+        warnings.warn(
+            f"video {self.path.name}: truncated: header lists {self.header_frames} frames but only "
+            f"{self.frames_read} decode ({where}); results cover the decoded frames "
+            "(--allow-truncated)", stacklevel=2)

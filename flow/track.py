@@ -1,48 +1,184 @@
 """The reference-frame driver (paper section 3.5) and its sparse counterpart.
 
 Dense methods: every frame is compared with the one fixed reference frame, so
-frames are independent (``jobs`` threads work on them at once) and tracking
-resumes by itself after an occlusion. The driver keeps only the small ``(F, P)``
-per-POI tracks and filters them at the end (eq. 10-12 need the whole series).
+frames are independent (``jobs`` threads work on them at once), a run can be
+split into frame ranges measured separately and merged, and tracking resumes
+by itself after an occlusion. Sparse methods (KLT) follow their own features
+through the sequence in order.
 
-Sparse methods (KLT) follow their own features through the sequence in order.
+Memory stays constant whatever the clip length: frames are streamed, and the
+per-POI tracks (``frames x POIs``, which eq. 10-12 need whole) go to a
+disk-backed :class:`PoiStore` and are read back in blocks of frames.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
+import queue
 import sys
+import tempfile
 import threading
 import time
 import warnings
+import zipfile
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from flow.filtering import FilterResult, filter_and_average
+from flow.filtering import (
+    FilterResult,
+    block_rows,
+    filter_and_average,
+    reference_offset,
+    row_blocks,
+)
 from flow.io import FrameSource, InputError
+
+Undistort = Callable[[np.ndarray], np.ndarray] | None
+
+
+class DiskMatrix:
+    """A read-only ``(frames, points)`` float32 matrix in a file, read a block of rows at a time.
+
+    Rows are read with ``pread`` rather than memory-mapped: pages of a mapped
+    file count as the process's resident memory while they stay cached, so a
+    mapping would look (to ``top``, to a scheduler's memory limit) as if the
+    whole matrix were in memory. Indexing supports what the filters need:
+    ``m[i]``, ``m[a:b]``, ``m[rows, columns]``; ``np.asarray(m)`` reads it all.
+    """
+
+    dtype = np.dtype(np.float32)
+    ndim = 2
+
+    def __init__(self, handle: Any, shape: tuple[int, int]) -> None:
+        self._handle = handle
+        self.shape = (int(shape[0]), int(shape[1]))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def _rows(self, start: int, stop: int) -> np.ndarray:
+        n_points = self.shape[1]
+        count = max(stop - start, 0)
+        data = os.pread(self._handle.fileno(), count * n_points * 4, start * n_points * 4)
+        return np.frombuffer(data, np.float32).reshape(count, n_points)
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        rest: tuple = ()
+        if isinstance(key, tuple):
+            key, rest = key[0], key[1:]
+        if isinstance(key, (int, np.integer)):
+            index = int(key) + (self.shape[0] if key < 0 else 0)
+            if not 0 <= index < self.shape[0]:
+                raise IndexError(f"row {key} out of range for {self.shape[0]} rows")
+            return self._rows(index, index + 1)[(0, *rest)]
+        if isinstance(key, slice):
+            start, stop, step = key.indices(self.shape[0])
+            return self._rows(start, max(stop, start))[(slice(None, None, step), *rest)]
+        raise TypeError(f"DiskMatrix rows take an int or a slice, not {type(key).__name__}")
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        whole = self._rows(0, self.shape[0])
+        return whole if dtype is None else whole.astype(dtype)
+
+    def __del__(self) -> None:
+        handle = getattr(self, "_handle", None)
+        if handle is not None:
+            handle.close()
+
+
+class PoiStore:
+    """Per-POI displacement rows, appended frame by frame to disk, read back as :class:`DiskMatrix`.
+
+    Two unlinked temporary files (dx, dy) hold ``float32`` rows of ``n_points``;
+    the operating system deletes them when the run ends, however it ends.
+    ``directory`` should be on a real disk (``/tmp`` may be memory-backed):
+    the CLI puts it beside the output.
+    """
+
+    def __init__(self, n_points: int, *, directory: str | Path | None = None) -> None:
+        self.n_points = int(n_points)
+        self.n_frames = 0
+        self._files = [tempfile.TemporaryFile(prefix=".refflow-poi-", dir=directory) for _ in range(2)]
+
+    def append(self, dx: np.ndarray, dy: np.ndarray) -> None:
+        self.extend(np.asarray(dx)[None], np.asarray(dy)[None])
+
+    def extend(self, dx: np.ndarray, dy: np.ndarray) -> None:
+        """Append a block of rows ``(n, n_points)``."""
+        for handle, rows in zip(self._files, (dx, dy), strict=True):
+            handle.write(np.ascontiguousarray(rows, np.float32).tobytes())
+        self.n_frames += len(dx)
+
+    def arrays(self) -> tuple[DiskMatrix, DiskMatrix]:
+        """Finish the store: its rows as read-only ``(n_frames, n_points)`` matrices (they own the files)."""
+        for handle in self._files:
+            handle.flush()
+        matrices = tuple(DiskMatrix(handle, (self.n_frames, self.n_points)) for handle in self._files)
+        self._files = []
+        return matrices  # type: ignore[return-value]
+
+    def __del__(self) -> None:
+        # A run that fails half-way drops its store unfinished.
+        for handle in getattr(self, "_files", []):
+            handle.close()
+
+
+def write_npz(path: str | Path, arrays: dict[str, Any], *, compress: bool = False) -> None:
+    """Write arrays as an ``.npz`` that ``np.load`` reads; :class:`DiskMatrix` members are streamed.
+
+    ``np.savez`` would first read a disk matrix whole into memory.
+    """
+    compression = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(path, "w", compression=compression, allowZip64=True) as archive:
+        for name, value in arrays.items():
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                if isinstance(value, DiskMatrix):
+                    header = {"descr": np.lib.format.dtype_to_descr(value.dtype), "fortran_order": False,
+                              "shape": value.shape}
+                    np.lib.format.write_array_header_2_0(member, header)
+                    for rows in block_rows(*value.shape):
+                        member.write(value[rows].tobytes())
+                else:
+                    np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
 @dataclass
 class Tracks:
-    """Raw per-POI measurement of a run, before filtering."""
+    """Raw per-POI measurement of a run (or of a range of its frames), before filtering."""
 
     frame: np.ndarray  # (F,) int
     time_s: np.ndarray  # (F,)
-    dx: np.ndarray  # (F, P) float32, px, NaN where unknown
-    dy: np.ndarray
+    dx: Any  # (F, P) float32 (a DiskMatrix or an array), px, NaN where unknown
+    dy: Any
     residual: np.ndarray  # (F,) mean |I_cur(x + d) - I_ref(x)| over POIs, grey levels
     x_px: np.ndarray  # (P,) POI / feature positions in the reference (ROI pixels)
     y_px: np.ndarray
-    reference_row: int
+    reference_frame: int
+    # The method's own output at the reference frame (ideally zero), removed by the
+    # filtering as the paper's offset; kept here so a range without the reference frame
+    # is filtered exactly like the whole run.
+    offset_dx: np.ndarray  # (P,) float64
+    offset_dy: np.ndarray
     timings_s: dict[str, float] = field(default_factory=dict)
     truncated: bool = False
     header_frames: int = 0
+    reference_digest: str = ""  # hash of the reference image the run compared against
+
+    @property
+    def reference_row(self) -> int | None:
+        """Row of the reference frame, None if it lies outside the measured frames."""
+        rows = np.flatnonzero(self.frame == self.reference_frame)
+        return int(rows[0]) if rows.size else None
 
 
 @dataclass
@@ -52,9 +188,10 @@ class Measurement:
     tracks: Tracks
     filtered: FilterResult
     valid: np.ndarray  # (F,) bool
-    poi_kept_frac: np.ndarray  # (F,)
+    poi_kept_frac: np.ndarray  # (F,) see :func:`consistent_fraction`
     flow_spread_px: np.ndarray  # (F,) robust spread of the kept POIs' displacement
     residual_threshold: float
+    consistency_band_px: float = float("nan")
 
 
 def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -83,116 +220,177 @@ def _residual(reference_values: np.ndarray, current: np.ndarray, x: np.ndarray, 
     return float(diff.mean()) if diff.size else float("nan")
 
 
-def _frames(source: FrameSource, max_frames: int | None,
-            undistort: Callable[[np.ndarray], np.ndarray] | None) -> Iterator[tuple[int, float, np.ndarray]]:
-    for index, time_s, grey in source:
-        if max_frames is not None and index >= max_frames:
-            break
+def _frames(source: FrameSource, start: int, stop: int | None,
+            undistort: Undistort) -> Iterator[tuple[int, float, np.ndarray]]:
+    for index, time_s, grey in source.frames(start, stop):
         yield index, time_s, (undistort(grey) if undistort is not None else grey)
 
 
-def read_reference(source: FrameSource, reference_frame: int,
-                   undistort: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+def _stop(max_frames: int | None, frames: tuple[int, int | None] | None) -> tuple[int, int | None]:
+    start, stop = frames if frames is not None else (0, None)
+    if max_frames is not None:
+        stop = max_frames if stop is None else min(stop, max_frames)
+    return start, stop
+
+
+def read_reference(source: FrameSource, reference_frame: int, undistort: Undistort = None) -> np.ndarray:
     """Grey (undistorted) ROI of frame ``reference_frame``."""
     if reference_frame < 0:
         raise InputError(f"--reference-frame {reference_frame} is negative: pass a frame index >= 0")
-    for index, _, grey in _frames(source, None, undistort):
+    for index, _, grey in _frames(source, reference_frame, reference_frame + 1, undistort):
         if index == reference_frame:
             return grey
     raise InputError(f"--reference-frame {reference_frame} is beyond the {source.frames_read} "
                      "decodable frames: pick an earlier frame")
 
 
-def _progress(source: FrameSource, max_frames: int | None, show: bool) -> tqdm:
+def _progress(source: FrameSource, start: int, stop: int | None, show: bool) -> tqdm:
     total = source.header_frames or None
-    if max_frames is not None:
-        total = min(total, max_frames) if total else max_frames
+    if stop is not None:
+        total = min(total, stop) if total else stop
+    if total is not None:
+        total = max(total - start, 0)
     return tqdm(total=total, unit="frame", file=sys.stderr, disable=not show, leave=False)
+
+
+def image_digest(image: np.ndarray) -> str:
+    """Short hash of an image's pixels (tells whether two runs share a reference frame)."""
+    return hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest()[:16]
+
+
+def _timings(t0: float, t1: float, t2: float, n_frames: int) -> dict[str, float]:
+    # frames_s times the frame loop only: reading the reference and building the
+    # methods (setup_s) are not frame processing.
+    return {"setup_s": t1 - t0, "frames_s": t2 - t1, "frames_per_s": n_frames / max(t2 - t1, 1e-9)}
+
+
+def _no_frames(source: FrameSource, start: int, stop: int | None) -> InputError:
+    if start > 0 or stop is not None:
+        return InputError(f"no frame to measure in frames {start}:{'' if stop is None else stop}: "
+                          f"the video has {source.frames_read} decodable frames; pick a range inside it")
+    return InputError("no frame to measure: the video is empty")
 
 
 def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndarray, *,
                 reference_frame: int = 0, jobs: int = 1, max_frames: int | None = None,
-                undistort: Callable[[np.ndarray], np.ndarray] | None = None,
-                progress: bool = False) -> Tracks:
+                frames: tuple[int, int | None] | None = None, undistort: Undistort = None,
+                progress: bool = False, store_dir: str | Path | None = None) -> Tracks:
     """Run a dense method of ``factory()`` on every frame against the reference frame.
 
-    ``factory`` builds a method instance; each worker thread gets its own (OpenCV
-    flow objects are not thread-safe), and OpenCV releases the GIL while it computes.
+    Parameters
+    ----------
+    source : FrameSource
+    factory : callable
+        Builds a method instance. Each worker thread gets its own (OpenCV flow
+        objects are not thread-safe); they are built before the timed frame loop,
+        and OpenCV releases the GIL while it computes.
+    poi_xy : ndarray, shape (P, 2), int
+        POI ``(x, y)`` in ROI pixels.
+    reference_frame : int
+        Index of the fixed reference frame; it is read from the video even when
+        it lies outside ``frames``.
+    frames : (start, stop), optional
+        Measure frames ``start <= index < stop`` only (``stop`` None: to the end).
+    max_frames : int, optional
+        Stop before frame index ``max_frames``.
+    store_dir : path, optional
+        Folder of the disk-backed per-POI store (default: the system's temporary folder).
     """
     if jobs < 1:
         raise InputError(f"--jobs {jobs} must be >= 1")
+    start, stop = _stop(max_frames, frames)
     t0 = time.perf_counter()
     reference = read_reference(source, reference_frame, undistort)
-    xs = poi_xy[:, 0].astype(np.float32)
-    ys = poi_xy[:, 1].astype(np.float32)
-    ref_values = reference[poi_xy[:, 1], poi_xy[:, 0]].astype(np.float32)
+    columns, rows_ = poi_xy[:, 0], poi_xy[:, 1]
+    xs = columns.astype(np.float32)
+    ys = rows_.astype(np.float32)
+    ref_values = reference[rows_, columns].astype(np.float32)
+    idle: queue.SimpleQueue = queue.SimpleQueue()
+    for _ in range(jobs):
+        idle.put(factory())
     local = threading.local()
 
-    def measure(current: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    def measure_frame(current: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         method = getattr(local, "method", None)
         if method is None:
-            method = local.method = factory()
+            method = local.method = idle.get_nowait()
         flow = method.calc(reference, current)
-        dx = flow[poi_xy[:, 1], poi_xy[:, 0], 0].astype(np.float32)
-        dy = flow[poi_xy[:, 1], poi_xy[:, 0], 1].astype(np.float32)
+        dx = flow[rows_, columns, 0].astype(np.float32)
+        dy = flow[rows_, columns, 1].astype(np.float32)
         return dx, dy, _residual(ref_values, current, xs, ys, dx, dy)
 
-    frames: list[int] = []
+    in_range = start <= reference_frame and (stop is None or reference_frame < stop)
+    offset = None
+    if not in_range:
+        # The range lacks the reference frame: measure it against itself, as the frame's own
+        # row would have been, so the offset removed is the same as in a whole run.
+        method = idle.get()
+        flow = method.calc(reference, reference)
+        idle.put(method)
+        offset = (flow[rows_, columns, 0].astype(np.float32).astype(np.float64),
+                  flow[rows_, columns, 1].astype(np.float32).astype(np.float64))
+
+    store = PoiStore(len(poi_xy), directory=store_dir)
+    frame_list: list[int] = []
     times: list[float] = []
-    rows_x: list[np.ndarray] = []
-    rows_y: list[np.ndarray] = []
     residuals: list[float] = []
 
     def collect(index: int, time_s: float, result: tuple[np.ndarray, np.ndarray, float]) -> None:
-        frames.append(index)
+        frame_list.append(index)
         times.append(time_s)
-        rows_x.append(result[0])
-        rows_y.append(result[1])
+        store.append(result[0], result[1])
         residuals.append(result[2])
         bar.update(1)
 
     t1 = time.perf_counter()
-    bar = _progress(source, max_frames, progress)
+    bar = _progress(source, start, stop, progress)
     threads_before = cv2.getNumThreads()
     try:
         if jobs == 1:
-            for index, time_s, grey in _frames(source, max_frames, undistort):
-                collect(index, time_s, measure(grey))
+            for index, time_s, grey in _frames(source, start, stop, undistort):
+                collect(index, time_s, measure_frame(grey))
         else:
             # One OpenCV thread per job avoids oversubscribing the cores; a bounded queue keeps
             # memory constant and results in frame order.
             cv2.setNumThreads(1)
             with ThreadPoolExecutor(max_workers=jobs) as pool:
                 pending: deque = deque()
-                for index, time_s, grey in _frames(source, max_frames, undistort):
-                    pending.append((index, time_s, pool.submit(measure, grey)))
-                    if len(pending) >= 2 * jobs:
+                try:
+                    for index, time_s, grey in _frames(source, start, stop, undistort):
+                        pending.append((index, time_s, pool.submit(measure_frame, grey)))
+                        if len(pending) >= 2 * jobs:
+                            i, t, fut = pending.popleft()
+                            collect(i, t, fut.result())
+                    while pending:
                         i, t, fut = pending.popleft()
                         collect(i, t, fut.result())
-                while pending:
-                    i, t, fut = pending.popleft()
-                    collect(i, t, fut.result())
+                except BaseException:
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    raise
     finally:
         cv2.setNumThreads(threads_before)
         bar.close()
     t2 = time.perf_counter()
-    if not frames:
-        raise InputError("no frame to measure: the video is empty or --max-frames is 0")
-    reference_row = frames.index(reference_frame) if reference_frame in frames else 0
-    return Tracks(np.asarray(frames), np.asarray(times), np.vstack(rows_x), np.vstack(rows_y),
-                  np.asarray(residuals), xs, ys, reference_row,
-                  {"setup_s": t1 - t0, "frames_s": t2 - t1, "frames_per_s": len(frames) / max(t2 - t1, 1e-9)},
-                  source.truncated, source.header_frames)
+    if not frame_list:
+        raise _no_frames(source, start, stop)
+    dx, dy = store.arrays()
+    frame_index = np.asarray(frame_list)
+    if offset is None:
+        row = int(np.flatnonzero(frame_index == reference_frame)[0])
+        offset = (reference_offset(dx, row), reference_offset(dy, row))
+    return Tracks(frame_index, np.asarray(times), dx, dy, np.asarray(residuals), xs, ys,
+                  reference_frame, offset[0], offset[1], _timings(t0, t1, t2, len(frame_list)),
+                  source.truncated, source.header_frames, image_digest(reference))
 
 
 def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
-                 reference_frame: int = 0, max_frames: int | None = None,
-                 undistort: Callable[[np.ndarray], np.ndarray] | None = None,
-                 progress: bool = False) -> Tracks:
+                 reference_frame: int = 0, max_frames: int | None = None, undistort: Undistort = None,
+                 progress: bool = False, store_dir: str | Path | None = None) -> Tracks:
     """Run a sparse method: detect features in the reference, follow them frame by frame.
 
     Frames before the reference frame cannot be reached by a forward tracker; they are
-    reported as unknown (NaN).
+    reported as unknown (NaN). A sparse run cannot be split into frame ranges: its
+    features are followed from frame to frame.
     """
     t0 = time.perf_counter()
     reference = read_reference(source, reference_frame, undistort)
@@ -202,33 +400,35 @@ def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
                          "the sparse method cannot track; use a dense method or a larger --roi")
     xs, ys = points[:, 0], points[:, 1]
     ref_values = _sample(reference, xs, ys)
-    frames, times, rows_x, rows_y, residuals = [], [], [], [], []
+    store = PoiStore(len(points), directory=store_dir)
+    frame_list, times, residuals = [], [], []
+    start, stop = _stop(max_frames, None)
     t1 = time.perf_counter()
-    bar = _progress(source, max_frames, progress)
+    bar = _progress(source, start, stop, progress)
     try:
-        for index, time_s, grey in _frames(source, max_frames, undistort):
+        for index, time_s, grey in _frames(source, start, stop, undistort):
             if index < reference_frame:
                 d = np.full((len(points), 2), np.nan, np.float32)
                 res = float("nan")
             else:
                 d = method.step(reference if index == reference_frame else grey)
                 res = _residual(ref_values, grey, xs, ys, d[:, 0], d[:, 1])
-            frames.append(index)
+            frame_list.append(index)
             times.append(time_s)
-            rows_x.append(d[:, 0])
-            rows_y.append(d[:, 1])
+            store.append(d[:, 0], d[:, 1])
             residuals.append(res)
             bar.update(1)
     finally:
         bar.close()
     t2 = time.perf_counter()
-    if not frames:
-        raise InputError("no frame to measure: the video is empty or --max-frames is 0")
-    return Tracks(np.asarray(frames), np.asarray(times), np.vstack(rows_x), np.vstack(rows_y),
-                  np.asarray(residuals), xs.astype(np.float32), ys.astype(np.float32),
-                  frames.index(reference_frame) if reference_frame in frames else 0,
-                  {"setup_s": t1 - t0, "frames_s": t2 - t1, "frames_per_s": len(frames) / max(t2 - t1, 1e-9)},
-                  source.truncated, source.header_frames)
+    if not frame_list:
+        raise _no_frames(source, start, stop)
+    dx, dy = store.arrays()
+    row = frame_list.index(reference_frame) if reference_frame in frame_list else 0
+    return Tracks(np.asarray(frame_list), np.asarray(times), dx, dy, np.asarray(residuals),
+                  xs.astype(np.float32), ys.astype(np.float32), reference_frame,
+                  reference_offset(dx, row), reference_offset(dy, row), _timings(t0, t1, t2, len(frame_list)),
+                  source.truncated, source.header_frames, image_digest(reference))
 
 
 def flag_invalid(residual: np.ndarray, *, k_mad: float = 8.0, ratio: float = 2.5,
@@ -249,6 +449,21 @@ def flag_invalid(residual: np.ndarray, *, k_mad: float = 8.0, ratio: float = 2.5
     return np.isfinite(residual) & (residual <= threshold), threshold
 
 
+class _NanQuiet:
+    """Frames where every POI is NaN give NaN statistics, without RuntimeWarnings."""
+
+    def __enter__(self) -> None:
+        self._errstate = np.errstate(all="ignore")
+        self._errstate.__enter__()
+        self._warnings = warnings.catch_warnings()
+        self._warnings.__enter__()
+        warnings.simplefilter("ignore", RuntimeWarning)
+
+    def __exit__(self, *exc: object) -> None:
+        self._warnings.__exit__(*exc)
+        self._errstate.__exit__(*exc)
+
+
 def poi_spread(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
     """Per frame, the robust spread (px) of the POI displacements: 1.4826 x MAD, x and y combined.
 
@@ -258,11 +473,30 @@ def poi_spread(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
     spread = np.full(dx.shape[0], np.nan)
     if dx.shape[1] == 0:
         return spread
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
+    with _NanQuiet():
         mad_x = np.nanmedian(np.abs(dx - np.nanmedian(dx, axis=1, keepdims=True)), axis=1)
         mad_y = np.nanmedian(np.abs(dy - np.nanmedian(dy, axis=1, keepdims=True)), axis=1)
     return 1.4826 * np.hypot(mad_x, mad_y)
+
+
+def consistent_fraction(dx: np.ndarray, dy: np.ndarray, *, band_px: float,
+                        relative: float = 0.25) -> np.ndarray:
+    """Per frame, the fraction of POIs whose displacement is finite and agrees with the frame's median.
+
+    A POI agrees when its 2-D distance from the frame's median displacement is
+    at most ``max(band_px, relative * |median|)``: the relative term lets a
+    structure that rotates or bends within the mask keep its POIs at large
+    amplitude, while a blocked view or a failed flow scatters them out.
+    """
+    if dx.shape[1] == 0:
+        return np.zeros(dx.shape[0])
+    with _NanQuiet():
+        median_x = np.nanmedian(dx, axis=1, keepdims=True)
+        median_y = np.nanmedian(dy, axis=1, keepdims=True)
+        distance = np.hypot(dx - median_x, dy - median_y)
+        band = np.maximum(band_px, relative * np.hypot(median_x, median_y))
+        agree = np.isfinite(distance) & (distance <= band)
+    return agree.sum(axis=1) / dx.shape[1]
 
 
 def flag_incoherent(spread: np.ndarray, *, ratio: float = 4.0, floor_px: float = 1.5) -> np.ndarray:
@@ -279,35 +513,63 @@ def flag_incoherent(spread: np.ndarray, *, ratio: float = 4.0, floor_px: float =
     return np.isfinite(spread) & (spread > threshold)
 
 
+def _per_frame(tracks: Tracks, columns: np.ndarray | None,
+               statistic: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """``statistic(dx_block, dy_block)`` of every frame, offsets removed, read in blocks."""
+    out = np.full(len(tracks.frame), np.nan)
+    for rows, bx, by in row_blocks(tracks.dx, tracks.dy, tracks.offset_dx, tracks.offset_dy, columns):
+        out[rows] = statistic(bx, by)
+    return out
+
+
 def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean",
             threshold_ratio: float = 0.5, threshold_px: float | None = None,
             mcr_threshold: float = 0.5, residual_ratio: float = 2.5,
             residual_k_mad: float = 8.0, residual_floor: float = 3.0,
             spread_ratio: float = 4.0, spread_floor_px: float = 1.5,
-            check_coherence: bool = True) -> Measurement:
+            check_coherence: bool = True, max_rounds: int = 3, band_ratio: float = 3.0,
+            band_floor_px: float = 0.5, band_relative: float = 0.25) -> Measurement:
     """Quality flags, eq. (10)-(12) filtering and averaging of a run's tracks.
 
     A frame is invalid when its photometric residual is far above its baseline
     (:func:`flag_invalid`), when no POI was measured, or, with
-    ``check_coherence``, when its POIs scatter far more than usual
-    (:func:`flag_incoherent`).
+    ``check_coherence``, when the POIs that survive the filters scatter far more
+    than usual (:func:`flag_incoherent`). The coherence check must only look at
+    the surviving POIs (background POIs in the mask stay put while the
+    structure moves, which is no sign of a blocked view), and the filters must
+    only use valid frames, so the two alternate until the flags settle (at most
+    ``max_rounds`` rounds).
+
+    ``poi_kept_frac`` is, per frame, the :func:`consistent_fraction` of the
+    surviving POIs with a band of ``max(band_ratio * median spread,
+    band_floor_px)``.
     """
-    valid, threshold = flag_invalid(tracks.residual, k_mad=residual_k_mad, ratio=residual_ratio,
-                                    floor=residual_floor)
-    all_nan = ~np.isfinite(tracks.dx).any(axis=1)
-    valid &= ~all_nan
-    if check_coherence:
-        valid &= ~flag_incoherent(poi_spread(tracks.dx, tracks.dy), ratio=spread_ratio,
-                                  floor_px=spread_floor_px)
-    filtered = filter_and_average(tracks.dx, tracks.dy, valid=valid, reference_row=tracks.reference_row,
+    photometric, threshold = flag_invalid(tracks.residual, k_mad=residual_k_mad, ratio=residual_ratio,
+                                          floor=residual_floor)
+    measured = _per_frame(tracks, None, lambda bx, by: np.isfinite(bx).any(axis=1)) > 0
+    base = photometric & measured
+    offset = (tracks.offset_dx, tracks.offset_dy)
+
+    def run_filters(valid: np.ndarray) -> FilterResult:
+        return filter_and_average(tracks.dx, tracks.dy, valid=valid, offset=offset,
                                   threshold_ratio=threshold_ratio, threshold_px=threshold_px,
                                   mcr_threshold=mcr_threshold, average=average, enabled=filter_enabled)
-    n_points = tracks.dx.shape[1]
-    kept = filtered.kept
-    finite = np.isfinite(tracks.dx[:, kept])
-    poi_kept_frac = finite.sum(axis=1) / max(n_points, 1)
-    spread = poi_spread(tracks.dx[:, kept], tracks.dy[:, kept])
-    return Measurement(tracks, filtered, valid, poi_kept_frac, spread, threshold)
+
+    valid = base.copy()
+    filtered = run_filters(valid)
+    spread = _per_frame(tracks, filtered.kept, poi_spread)
+    for _ in range(max_rounds if check_coherence else 0):
+        flagged = base & ~flag_incoherent(spread, ratio=spread_ratio, floor_px=spread_floor_px)
+        if np.array_equal(flagged, valid):
+            break
+        valid = flagged
+        filtered = run_filters(valid)
+        spread = _per_frame(tracks, filtered.kept, poi_spread)
+    typical = spread[valid & np.isfinite(spread)]
+    band = max(band_ratio * float(np.median(typical)) if typical.size else 0.0, band_floor_px)
+    kept_frac = _per_frame(tracks, filtered.kept, lambda bx, by: consistent_fraction(
+        bx, by, band_px=band, relative=band_relative))
+    return Measurement(tracks, filtered, valid, kept_frac, spread, threshold, band)
 
 
 def iter_rows(result: Measurement, mm_per_px: float) -> Iterable[dict[str, Any]]:
@@ -321,3 +583,111 @@ def iter_rows(result: Measurement, mm_per_px: float) -> Iterable[dict[str, Any]]
                "dx_mm": dx * mm_per_px, "dy_mm": dy * mm_per_px, "valid": int(ok),
                "poi_kept_frac": float(result.poi_kept_frac[i]), "residual": float(tr.residual[i]),
                "flow_spread_px": float(result.flow_spread_px[i])}
+
+
+RAW_FORMAT = "refflow-raw-tracks/1"
+
+
+def save_raw_tracks(path: str | Path, tracks: Tracks, meta: dict[str, Any]) -> None:
+    """Write the unfiltered tracks of a run or a range of frames (``track --raw-tracks``).
+
+    ``meta`` must hold an ``identity`` dict (method, parameters, reference,
+    ROI, calibration, POIs ...) that parts of one run share; :func:`load_raw_tracks`
+    checks it. The per-POI matrices are streamed into the file (uncompressed).
+    """
+    write_npz(path, {"format": np.array(RAW_FORMAT), "meta": np.array(json.dumps(meta, sort_keys=True)),
+                     "frame": tracks.frame, "time_s": tracks.time_s, "residual": tracks.residual,
+                     "x_px": tracks.x_px, "y_px": tracks.y_px, "offset_dx_px": tracks.offset_dx,
+                     "offset_dy_px": tracks.offset_dy, "dx_px": tracks.dx, "dy_px": tracks.dy})
+
+
+@dataclass
+class _Part:
+    path: Path
+    meta: dict[str, Any]
+    small: dict[str, np.ndarray]
+
+
+def _open_part(path: Path) -> _Part:
+    if not path.is_file():
+        raise InputError(f"part {str(path)!r} does not exist: pass the files `refflow track --raw-tracks` wrote")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "format" not in data.files or str(data["format"]) != RAW_FORMAT:
+                raise InputError(f"{str(path)!r} is not a raw-tracks file of `refflow track --raw-tracks` "
+                                 f"({RAW_FORMAT})")
+            small = {k: data[k] for k in data.files if k not in ("dx_px", "dy_px", "meta", "format")}
+            meta = json.loads(str(data["meta"]))
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        if isinstance(err, InputError):
+            raise
+        raise InputError(f"{str(path)!r} is not a readable .npz raw-tracks file ({err})") from None
+    return _Part(path, meta, small)
+
+
+def _rows_of(path: Path, name: str, n_points: int) -> Iterator[np.ndarray]:
+    """Blocks of rows of an ``(F, n_points)`` float32 member, read without loading it whole."""
+    with zipfile.ZipFile(path) as archive, archive.open(f"{name}.npy") as member:
+        version = np.lib.format.read_magic(member)
+        read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                       else np.lib.format.read_array_header_2_0)
+        shape, fortran, dtype = read_header(member)
+        if fortran or dtype != np.float32 or len(shape) != 2 or shape[1] != n_points:
+            raise InputError(f"{path}: {name} is not a float32 (frames, {n_points}) matrix")
+        for rows in block_rows(shape[0], n_points):
+            count = rows.stop - rows.start
+            yield np.frombuffer(member.read(count * n_points * 4), np.float32).reshape(count, n_points)
+
+
+def load_raw_tracks(paths: Iterable[str | Path], *,
+                    store_dir: str | Path | None = None) -> tuple[Tracks, list[dict[str, Any]]]:
+    """Concatenate raw-tracks parts of one run into :class:`Tracks` (in frame order).
+
+    The parts must share their ``identity`` (same video, reference frame,
+    ROI, calibration, POIs, method and parameters) and cover contiguous,
+    non-overlapping frame ranges. Returns the tracks and the parts' ``meta``
+    in frame order. Memory stays bounded: rows go through a :class:`PoiStore`.
+    """
+    parts = [_open_part(Path(p)) for p in paths]
+    if not parts:
+        raise InputError("no part given: pass the .npz files of `refflow track --raw-tracks`")
+    first = parts[0]
+    for part in parts[1:]:
+        for key in sorted(set(first.meta["identity"]) | set(part.meta["identity"])):
+            mine, theirs = first.meta["identity"].get(key), part.meta["identity"].get(key)
+            if mine != theirs:
+                raise InputError(f"{part.path.name} and {first.path.name} differ in {key} ({theirs!r} vs "
+                                 f"{mine!r}): merge only parts of one run (same video, reference, ROI, "
+                                 "POIs, method and parameters)")
+        if not (np.array_equal(part.small["x_px"], first.small["x_px"])
+                and np.array_equal(part.small["y_px"], first.small["y_px"])):
+            raise InputError(f"{part.path.name} and {first.path.name} track different POIs: "
+                             "use the same mask, --grid-step and --roi for every part")
+    parts.sort(key=lambda part: int(part.small["frame"][0]) if part.small["frame"].size else -1)
+    for before, after in zip(parts, parts[1:], strict=False):
+        end, begin = int(before.small["frame"][-1]) + 1, int(after.small["frame"][0])
+        if begin < end:
+            raise InputError(f"{after.path.name} (from frame {begin}) overlaps {before.path.name} "
+                             f"(to frame {end - 1}): give non-overlapping --frames ranges")
+        if begin > end:
+            raise InputError(f"frames {end}:{begin} are missing between {before.path.name} and "
+                             f"{after.path.name}: track that range too (--frames {end}:{begin})")
+    n_points = len(first.small["x_px"])
+    store = PoiStore(n_points, directory=store_dir)
+    for part in parts:
+        for block_x, block_y in zip(_rows_of(part.path, "dx_px", n_points),
+                                    _rows_of(part.path, "dy_px", n_points), strict=True):
+            store.extend(block_x, block_y)
+    dx, dy = store.arrays()
+    reference_frame = int(first.meta["identity"]["reference_frame"])
+    # The reference frame's own row gives the offset where a part holds it (as in a whole run).
+    holder = next((p for p in parts if reference_frame in p.small["frame"]), parts[0])
+    concat = {key: np.concatenate([p.small[key] for p in parts]) for key in ("frame", "time_s", "residual")}
+    timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts) for key in ("setup_s", "frames_s")}
+    timings["frames_per_s"] = len(concat["frame"]) / max(timings["frames_s"], 1e-9)
+    tracks = Tracks(concat["frame"], concat["time_s"], dx, dy, concat["residual"],
+                    first.small["x_px"], first.small["y_px"], reference_frame,
+                    holder.small["offset_dx_px"].astype(np.float64), holder.small["offset_dy_px"].astype(np.float64),
+                    timings, any(p.meta["input"]["truncated"] for p in parts),
+                    int(first.meta["input"]["header_frames"]), first.meta["identity"]["reference_digest"])
+    return tracks, [p.meta for p in parts]

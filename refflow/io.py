@@ -19,31 +19,67 @@ _VERSIONED = ("refflow", "numpy", "scipy", "opencv-contrib-python-headless", "mu
               "pyrender", "trimesh", "imageio-ffmpeg", "numba")
 
 
+def _temporary_beside(final: Path) -> Path:
+    final.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".part{final.suffix}",
+                                    dir=final.parent)
+    os.close(fd)
+    return Path(tmp_name)
+
+
+def _publish(tmp: Path, final: Path) -> None:
+    # mkstemp creates 0600; give the result the permissions of an ordinary file.
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    os.replace(tmp, final)
+
+
+@contextlib.contextmanager
+def atomic_paths(*paths: str | os.PathLike[str]) -> Iterator[list[Path]]:
+    """Yield temporary paths beside ``paths``; rename them all onto ``paths`` on success.
+
+    The outputs of one run (a CSV, its sidecar, an ``.npz``) belong together:
+    every file is written to its temporary first, and only when the ``with``
+    block has finished without an exception are they renamed, one after the
+    other, in the order given (put the file other tools look for first, e.g.
+    the CSV, last). On any exception (Ctrl-C included) every temporary is
+    removed (and a rename interrupted half-way takes back the files already
+    renamed), so a failed run never leaves a CSV without its sidecar. The temporary names keep the suffix, so writers that
+    infer the format from it (``np.savez``, ffmpeg, ``cv2.imwrite``) still work.
+    """
+    finals = [Path(p) for p in paths]
+    if len(set(finals)) != len(finals):
+        raise ValueError(f"atomic_paths got the same path twice: {[str(p) for p in finals]}")
+    temporaries: list[Path] = []
+    published: list[Path] = []
+    try:
+        for final in finals:
+            temporaries.append(_temporary_beside(final))
+        yield list(temporaries)
+        for tmp, final in zip(temporaries, finals, strict=True):
+            _publish(tmp, final)
+            published.append(final)
+    except BaseException:
+        for tmp in temporaries:
+            tmp.unlink(missing_ok=True)
+        # Interrupted between two renames: take back the ones already made, so the set
+        # stays all-or-nothing (their previous versions were replaced already).
+        for final in published:
+            final.unlink(missing_ok=True)
+        raise
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
 
     On any exception (Ctrl-C included) the temporary file is removed, so a
     failed run never leaves a half-written output under the final name.
-    The temporary name keeps the suffix, so writers that infer the format
-    from it (``np.savez``, ffmpeg, ``cv2.imwrite``) still work.
+    One-file form of :func:`atomic_paths`.
     """
-    final = Path(path)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=f".part{final.suffix}",
-                                    dir=final.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
+    with atomic_paths(path) as (tmp,):
         yield tmp
-        # mkstemp creates 0600; give the result the permissions of an ordinary file.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, final)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _jsonable(value: Any) -> Any:
@@ -60,10 +96,20 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
+def json_text(data: Mapping[str, Any]) -> str:
+    """``data`` as indented, key-sorted JSON text (NumPy values and paths converted).
+
+    Raises ``ValueError`` for NaN or infinity: JSON has no such numbers, so
+    writers must store ``None`` where a value is unknown.
+    """
+    return json.dumps(_jsonable(data), indent=2, sort_keys=True, allow_nan=False) + "\n"
+
+
 def write_json(path: str | os.PathLike[str], data: Mapping[str, Any]) -> None:
     """Write ``data`` as indented, key-sorted JSON, atomically."""
+    text = json_text(data)  # serialise first: a bad value must not even create the temporary
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(_jsonable(data), indent=2, sort_keys=True, allow_nan=False) + "\n")
+        tmp.write_text(text)
 
 
 def config_hash(config: Mapping[str, Any]) -> str:

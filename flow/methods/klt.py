@@ -23,6 +23,14 @@ import numpy as np
 
 from flow.registry import Method, register
 
+_KLT_DEFAULTS = dict(detector="harris", max_corners=200, quality_level=0.01, min_distance=5,
+                     block_size=5, window=21, levels=3, use_mask=False)
+
+
+def _check_detector(detector: str) -> None:
+    if detector not in ("harris", "shi-tomasi"):
+        raise ValueError(f"KLT detector {detector!r} unknown; use 'harris' or 'shi-tomasi'")
+
 
 class SparseMethod(Method):
     """Base class of sparse methods that follow their own features.
@@ -34,6 +42,14 @@ class SparseMethod(Method):
     """
 
     kind = "sparse"
+
+    def __init__(self, **params: Any) -> None:
+        unknown = set(params) - set(_KLT_DEFAULTS)
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {sorted(unknown)}; valid: {sorted(_KLT_DEFAULTS)}")
+        merged = {**_KLT_DEFAULTS, **params}
+        _check_detector(merged["detector"])
+        super().__init__(**merged)
 
     def detect(self, reference: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
         """Feature positions ``(N, 2)`` float32 in ``reference`` (Harris or Shi-Tomasi)."""
@@ -76,15 +92,6 @@ class SparseMethod(Method):
         raise NotImplementedError
 
 
-_KLT_DEFAULTS = dict(detector="harris", max_corners=200, quality_level=0.01, min_distance=5,
-                     block_size=5, window=21, levels=3, use_mask=False)
-
-
-def _check_detector(detector: str) -> None:
-    if detector not in ("harris", "shi-tomasi"):
-        raise ValueError(f"KLT detector {detector!r} unknown; use 'harris' or 'shi-tomasi'")
-
-
 @register("klt")
 class KLT(SparseMethod):
     """Paper baseline: corners in the ROI, pyramidal LK frame to frame, integrated motion.
@@ -99,11 +106,6 @@ class KLT(SparseMethod):
     """
 
     summary = "paper baseline: Harris corners in ROI, pyramidal LK frame to frame, summed motion, plain average"
-
-    def __init__(self, **params: Any) -> None:
-        merged = {**_KLT_DEFAULTS, **params}
-        _check_detector(merged["detector"])
-        super().__init__(**merged)
 
     def step(self, current: np.ndarray) -> np.ndarray:
         if current is not self.previous and self.alive.any():
@@ -123,11 +125,6 @@ class KLTReference(SparseMethod):
     """KLT features tracked against the fixed reference frame (no integration)."""
 
     summary = "KLT features (Harris) tracked against the fixed reference frame with pyramidal LK; plain average"
-
-    def __init__(self, **params: Any) -> None:
-        merged = {**_KLT_DEFAULTS, **params}
-        _check_detector(merged["detector"])
-        super().__init__(**merged)
 
     def step(self, current: np.ndarray) -> np.ndarray:
         if len(self.points0) == 0:

@@ -48,6 +48,33 @@ def write_clip(path: Path, fourcc: str, *, occlude: bool = True) -> None:
     writer.release()
 
 
+def ffmpeg(*args: str) -> None:
+    """Run the ffmpeg of imageio-ffmpeg (a dependency), quietly."""
+    import imageio_ffmpeg
+
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-v", "error", "-y", *args],
+                   check=True, capture_output=True, timeout=120)
+
+
+def make_bad_videos(folder: Path) -> None:
+    """Real containers that cannot be measured whole, as cameras and copies produce them."""
+    source = ["-f", "lavfi", "-i", f"testsrc=size={W}x{H}:rate=30"]
+    ffmpeg(*source, "-frames:v", "0", "-c:v", "ffv1", str(folder / "zero_frames.mkv"))
+    ffmpeg(*source, "-frames:v", "0", "-c:v", "libx264", str(folder / "zero_frames.mp4"))
+    # A complete MP4 with its index first (as phones write after recording), then cut:
+    # the header promises 30 frames, the data stops after a few.
+    ffmpeg(*source, "-frames:v", "30", "-c:v", "libx264", "-pix_fmt", "yuv420p", "-movflags", "+faststart",
+           str(folder / "whole.mp4"))
+    data = (folder / "whole.mp4").read_bytes()
+    (folder / "truncated.mp4").write_bytes(data[: len(data) * 6 // 10])
+    # Without the index first, an interrupted recording loses it altogether.
+    ffmpeg(*source, "-frames:v", "30", "-c:v", "libx264", "-pix_fmt", "yuv420p", str(folder / "plain.mp4"))
+    data = (folder / "plain.mp4").read_bytes()
+    (folder / "no_index.mp4").write_bytes(data[: len(data) // 2])
+    (folder / "not_a_video.mp4").write_text("this is not a video\n")
+    (folder / "empty.avi").write_bytes(b"")
+
+
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("clip")
@@ -58,9 +85,15 @@ def clip(tmp_path_factory) -> dict[str, Path]:
     cv2.imwrite(str(folder / "mask.png"), mask)
     cv2.imwrite(str(folder / "mask_small.png"), mask[:60, :80])
     cv2.imwrite(str(folder / "empty.png"), np.zeros((H, W), np.uint8))
-    (folder / "not_a_video.mp4").write_text("this is not a video\n")
-    (folder / "zero.avi").write_bytes(b"")
-    return {"video": video, "mask": folder / "mask.png", "folder": folder}
+    make_bad_videos(folder)
+    images = folder / "images"
+    images.mkdir()
+    cap = cv2.VideoCapture(str(video))
+    for i in range(4):
+        ok, image = cap.read()
+        assert ok
+        cv2.imwrite(str(images / f"img_{i:04d}.png"), image)
+    return {"video": video, "mask": folder / "mask.png", "folder": folder, "images": images}
 
 
 def read_csv(path: Path) -> list[dict[str, str]]:
@@ -140,58 +173,124 @@ def test_image_folder_input_and_known_length_scale(clip, tmp_path) -> None:
     assert float(rows[3]["dx_mm"]) == pytest.approx(2 * float(rows[3]["dx_px"]), abs=1e-5)
 
 
-def test_truncated_video_is_reported_and_measured_honestly(tmp_path) -> None:
+def test_truncated_video_is_refused_unless_allowed(clip, tmp_path) -> None:
+    """A cut file stops well before its container's duration: an error naming --allow-truncated."""
+    out = tmp_path / "cut.csv"
+    argv = [sys.executable, "-m", "flow.cli", "track", str(clip["folder"] / "truncated.mp4"),
+            "--rect", "10,48,140,24", "--method", "dis", "--out", str(out), "--no-progress"]
+    refused = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2
+    assert refused.stderr.count("\n") == 1, refused.stderr  # one line: no decoder noise
+    assert "is truncated" in refused.stderr and "--allow-truncated" in refused.stderr
+    assert not out.exists() and not out.with_suffix(".json").exists()
+    allowed = subprocess.run([*argv, "--allow-truncated"], capture_output=True, text=True, timeout=120)
+    assert allowed.returncode == 0, allowed.stderr
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert 0 < meta["input"]["frames_decoded"] < 30 == meta["input"]["header_frames"]
+    assert meta["input"]["frames_decoded"] == len(read_csv(out))
+    assert meta["input"]["truncated"] is True
+    assert any("truncated" in note for note in meta["notes"])
+
+
+def test_truncated_avi_is_refused_too(tmp_path) -> None:
     video = tmp_path / "clip.avi"
     write_clip(video, "MJPG", occlude=False)
     data = video.read_bytes()
     truncated = tmp_path / "cut.avi"
     truncated.write_bytes(data[: len(data) // 2])
     out = tmp_path / "cut.csv"
-    result = subprocess.run(
-        [sys.executable, "-m", "flow.cli", "track", str(truncated), "--rect", "10,48,140,24",
-         "--method", "dis", "--out", str(out), "--no-progress"],
-        capture_output=True, text=True, timeout=120)
-    assert result.returncode == 0, result.stderr
+    base = ["track", str(truncated), "--rect", "10,48,140,24", "--method", "dis", "--out", str(out), "--no-progress"]
+    assert main(base) == 2 and not out.exists()
+    assert main([*base, "--allow-truncated"]) == 0
+    assert 0 < len(read_csv(out)) < N
+
+
+def test_variable_frame_rate_video_is_not_called_truncated(tmp_path, capsys) -> None:
+    """Its header frame count is an estimate (duration x nominal rate), not a promise."""
+    video = tmp_path / "vfr.mkv"
+    # 8 frames, the last three at growing intervals; -fps_mode vfr keeps the timestamps.
+    ffmpeg("-f", "lavfi", "-i", f"testsrc=size={W}x{H}:rate=30", "-frames:v", "8",
+           "-vf", "setpts='if(lt(N,5),N,5+(N-4)*(N-3))/30/TB'", "-fps_mode", "vfr", "-c:v", "ffv1", str(video))
+    cap = cv2.VideoCapture(str(video))
+    assert cap.get(cv2.CAP_PROP_FRAME_COUNT) > 8, "the header must over-count for this test to mean anything"
+    out = tmp_path / "vfr.csv"
+    assert main(["track", str(video), "--rect", "10,10,100,80", "--method", "dis", "--out", str(out),
+                 "--no-progress"]) == 0
+    assert "warning" not in capsys.readouterr().err
     meta = json.loads(out.with_suffix(".json").read_text())
-    assert 0 < meta["input"]["frames_decoded"] < N == meta["input"]["header_frames"]
-    assert meta["input"]["frames_decoded"] == len(read_csv(out))
-    assert meta["input"]["truncated"] is True
-    assert "header says 30 frames but only" in result.stderr
-    assert any("truncated" in note for note in meta["notes"])
+    assert meta["input"]["truncated"] is False and meta["input"]["frames_measured"] == 8
+    assert any("variable frame rate" in note for note in meta["notes"])
+    times = np.array([float(r["time_s"]) for r in read_csv(out)])
+    assert np.allclose(np.diff(times), np.array([1, 1, 1, 1, 3, 4, 6]) / 30, atol=0.002)
 
 
 BAD = {
     "missing file": (["{folder}/nope.mp4", "--mask", "{mask}"], "does not exist"),
     "unreadable video": (["{folder}/not_a_video.mp4", "--mask", "{mask}"], "cannot be opened"),
-    "zero-frame video": (["{folder}/zero.avi", "--mask", "{mask}"], "cannot be opened"),
+    "empty file": (["{folder}/empty.avi", "--mask", "{mask}"], "is empty (0 bytes)"),
+    "zero-frame mkv": (["{folder}/zero_frames.mkv", "--mask", "{mask}"], "zero_frames.mkv' has no frames"),
+    "zero-frame mp4": (["{folder}/zero_frames.mp4", "--mask", "{mask}"], "zero_frames.mp4' has no frames"),
+    "truncated video": (["{folder}/truncated.mp4", "--mask", "{mask}"], "is truncated: its header lists 30"),
+    "truncated mp4 without index": (["{folder}/no_index.mp4", "--mask", "{mask}"], "moov atom) is missing"),
     "empty mask": (["{video}", "--mask", "{folder}/empty.png"], "selects no pixel"),
     "wrong-size mask": (["{video}", "--mask", "{folder}/mask_small.png"], "mask is 80x60 but frames are 160x120"),
     "missing mask": (["{video}", "--mask", "{folder}/nomask.png"], "does not exist"),
     "roi outside": (["{video}", "--mask", "{mask}", "--roi", "100,50,200,100"], "outside the 160x120 frame"),
-    "negative scale": (["{video}", "--mask", "{mask}", "--mm-per-px", "-1"], "not positive"),
-    "zero scale": (["{video}", "--mask", "{mask}", "--mm-per-px", "0"], "not positive"),
+    "negative scale": (["{video}", "--mask", "{mask}", "--mm-per-px", "-1"], "--mm-per-px -1.0 is not positive"),
+    "zero scale": (["{video}", "--mask", "{mask}", "--mm-per-px", "0"], "--mm-per-px 0.0 is not positive"),
+    "zero known length": (["{video}", "--mask", "{mask}", "--known-length", "0", "--between", "0,0,5,5"],
+                          "--known-length 0.0 is not positive"),
+    "negative known length": (["{video}", "--mask", "{mask}", "--known-length", "-5", "--between", "0,0,5,5"],
+                              "--known-length -5.0 is not positive"),
+    "coincident points": (["{video}", "--mask", "{mask}", "--known-length", "5", "--between", "3,3,3,3"],
+                          "the two points coincide"),
+    "zero fps video": (["{video}", "--mask", "{mask}", "--fps", "0"], "--fps 0.0 is not positive"),
+    "negative fps folder": (["{images}", "--mask", "{mask}", "--fps", "-30"], "--fps -30.0 is not positive"),
+    "folder without fps": (["{images}", "--mask", "{mask}"], "pass --fps"),
     "unknown method": (["{video}", "--mask", "{mask}", "--method", "magic"], "unknown method 'magic'"),
+    "bad method parameter": (["{video}", "--mask", "{mask}", "--param", "preset=warp"], "bad --param for dis"),
     "no mask": (["{video}"], "--mask"),
     "missing scale file": (["{video}", "--mask", "{mask}", "--scale-file", "{folder}/s.json"], "does not exist"),
     "scale file without scale": (["{video}", "--mask", "{mask}", "--scale-file", "{mask}"], "not readable JSON"),
     "two scales": (["{video}", "--mask", "{mask}", "--mm-per-px", "1", "--scale-file", "{mask}"], "pass one scale"),
     "missing calibration": (["{video}", "--mask", "{mask}", "--calibration", "{folder}/c.json"], "refflow calibrate"),
+    "bad frame range": (["{video}", "--mask", "{mask}", "--frames", "9:3"], "is not START:END"),
+    "frame range past the end": (["{video}", "--mask", "{mask}", "--frames", "40:50"], "no frame to measure in frames 40:50"),
+    "frame range for klt": (["{video}", "--mask", "{mask}", "--method", "klt", "--frames", "0:5"],
+                            "--frames needs a reference-frame (dense) method"),
+    "reference beyond the end": (["{video}", "--mask", "{mask}", "--reference-frame", "99"], "beyond the 30"),
 }
 
 
 @pytest.mark.parametrize("case", sorted(BAD))
 def test_bad_input_gives_one_line_and_no_output(case, clip, tmp_path, capsys) -> None:
     argv, expected = BAD[case]
-    fill = {"folder": clip["folder"], "mask": clip["mask"], "video": clip["video"]}
+    fill = {key: str(value) for key, value in clip.items()}
     out = tmp_path / "out.csv"
     method = [] if "--method" in argv else ["--method", "dis"]
-    rc = main(["track", *[a.format(**fill) for a in argv], *method, "--out", str(out), "--no-progress"])
+    rc = main(["track", *[a.format(**fill) for a in argv], *method, "--out", str(out),
+               "--save-poi-tracks", str(tmp_path / "poi.npz"), "--no-progress"])
     err = capsys.readouterr().err.strip()
     assert rc == 2
     assert expected in err, err
     assert len(err.splitlines()) == 1 and "Traceback" not in err
-    assert not out.exists() and not out.with_suffix(".json").exists()
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
+    assert list(tmp_path.iterdir()) == [], "no output, no temporary left behind"
+
+
+def test_every_bad_input_has_its_own_message() -> None:
+    messages = [expected for _, expected in BAD.values()]
+    generic = {"does not exist", "--mask"}  # shared on purpose: the path in the message tells them apart
+    assert len({m for m in messages if m not in generic}) == len([m for m in messages if m not in generic])
+
+
+def test_zero_frame_container_reports_one_line_without_decoder_noise(clip, tmp_path) -> None:
+    out = tmp_path / "o.csv"
+    result = subprocess.run([sys.executable, "-m", "flow.cli", "track", str(clip["folder"] / "zero_frames.mkv"),
+                             "--mask", str(clip["mask"]), "--method", "dis", "--out", str(out)],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and "has no frames" in result.stderr, result.stderr
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_console_script_reports_bad_input_without_traceback(tmp_path) -> None:
@@ -222,3 +321,181 @@ def test_scale_file_gives_the_mm_columns(clip, tmp_path) -> None:
     for row in rows:
         assert float(row["dx_mm"]) == pytest.approx(0.25 * float(row["dx_px"]), abs=1e-6)
     assert json.loads(out.with_suffix(".json").read_text())["scale"]["mm_per_px"] == 0.25
+
+
+def test_a_real_bug_shows_its_traceback(clip, tmp_path, monkeypatch) -> None:
+    """Only the tool's own input errors become one-line messages; a ValueError inside is a bug."""
+    from flow import track
+
+    def broken(*args, **kwargs):
+        raise ValueError("internal slip")
+
+    monkeypatch.setattr(track, "measure", broken)
+    out = tmp_path / "out.csv"
+    with pytest.raises(ValueError, match="internal slip"):
+        main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis",
+              "--max-frames", "3", "--out", str(out), "--no-progress"])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_sidecar_leaves_no_output_at_all(clip, tmp_path, monkeypatch) -> None:
+    """CSV, sidecar and .npz are one set: a failure writing any of them leaves none."""
+    real_write_text = Path.write_text
+
+    def failing_write_text(self, *args, **kwargs):
+        if self.name.endswith(".json"):
+            real_write_text(self, '{"half": ')  # a half-written sidecar, then the disk fills up
+            raise OSError(28, "No space left on device", str(self))
+        return real_write_text(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", failing_write_text)
+    out = tmp_path / "out.csv"
+    rc = main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--max-frames", "4",
+               "--out", str(out), "--save-poi-tracks", str(tmp_path / "poi.npz"),
+               "--raw-tracks", str(tmp_path / "raw.npz"), "--no-progress"])
+    assert rc == 2
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_poi_tracks_leave_no_csv(clip, tmp_path, monkeypatch) -> None:
+    from flow import track
+
+    def failing_write_npz(path, arrays, **kwargs):
+        Path(path).write_bytes(b"PK half an archive")
+        raise RuntimeError("writer crashed")
+
+    monkeypatch.setattr(track, "write_npz", failing_write_npz)
+    with pytest.raises(RuntimeError, match="writer crashed"):
+        main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--max-frames", "4",
+              "--out", str(tmp_path / "out.csv"), "--save-poi-tracks", str(tmp_path / "poi.npz"), "--no-progress"])
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_ctrl_c_during_tracking_leaves_nothing(clip, tmp_path, monkeypatch, capsys, jobs) -> None:
+    from flow import registry
+
+    real_get = registry.get_method
+    calls = {"n": 0}
+
+    def interrupted(name, **params):
+        method = real_get(name, **params)
+        real_calc = method.calc
+
+        def calc(reference, current):
+            calls["n"] += 1
+            if calls["n"] == 6:
+                raise KeyboardInterrupt
+            return real_calc(reference, current)
+
+        method.calc = calc
+        return method
+
+    monkeypatch.setattr(registry, "get_method", interrupted)
+    rc = main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--jobs", jobs,
+               "--out", str(tmp_path / "out.csv"), "--save-poi-tracks", str(tmp_path / "p.npz"),
+               "--raw-tracks", str(tmp_path / "raw.npz"), "--no-progress"])
+    assert rc == 130 and "interrupted; no output written" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def _numbers(path: Path) -> np.ndarray:
+    return np.array([[float(v) for v in row.values()] for row in read_csv(path)])
+
+
+@pytest.mark.parametrize("reference", ["0", "20"])
+def test_parts_merged_equal_one_run(clip, tmp_path, reference) -> None:
+    """--frames parts + merge give the very numbers of one run, wherever the reference frame is."""
+    base = ["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--grid-step", "2",
+            "--reference-frame", reference, "--no-progress"]
+    scale = ["--mm-per-px", "0.5"]
+    whole = tmp_path / "whole.csv"
+    assert main([*base, *scale, "--out", str(whole)]) == 0
+    parts = [tmp_path / "a.npz", tmp_path / "b.npz", tmp_path / "c.npz"]
+    for part, frames in zip(parts, ["0:9", "9:17", "17:"], strict=True):
+        assert main([*base, "--frames", frames, "--raw-tracks", str(part)]) == 0
+    merged = tmp_path / "merged.csv"
+    assert main(["merge", str(parts[2]), str(parts[0]), str(parts[1]), *scale, "--out", str(merged)]) == 0
+    assert np.array_equal(_numbers(whole), _numbers(merged), equal_nan=True)
+    meta_whole = json.loads(whole.with_suffix(".json").read_text())
+    meta_merged = json.loads(merged.with_suffix(".json").read_text())
+    for key in ("method", "parameters", "poi", "filter", "quality", "scale", "roi", "columns"):
+        assert meta_whole[key] == meta_merged[key], key
+    assert [p["frames"] for p in meta_merged["parts"]] == [[0, 9], [9, 17], [17, 30]]
+    assert meta_merged["quality"]["frames_invalid"] == len(OCCLUDED)
+
+
+def test_merge_refuses_parts_that_do_not_fit(clip, tmp_path, capsys) -> None:
+    base = ["track", str(clip["video"]), "--mask", str(clip["mask"]), "--grid-step", "3", "--no-progress"]
+    made = {}
+    for name, extra in {"a": ["--frames", "0:10"], "b": ["--frames", "10:20"], "gap": ["--frames", "12:20"],
+                        "overlap": ["--frames", "5:15"], "other": ["--frames", "10:20", "--grid-step", "4"],
+                        "farneback": ["--frames", "10:20", "--method", "farneback"]}.items():
+        made[name] = tmp_path / f"{name}.npz"
+        method = [] if "--method" in extra else ["--method", "dis"]
+        assert main([*base, *method, *extra, "--raw-tracks", str(made[name])]) == 0
+    capsys.readouterr()
+    out = tmp_path / "m.csv"
+    cases = {"gap": "frames 10:12 are missing", "overlap": "overlaps", "other": "differ in poi",
+             "farneback": "differ in method"}
+    for name, expected in cases.items():
+        assert main(["merge", str(made["a"]), str(made[name]), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert expected in err and len(err.strip().splitlines()) == 1, err
+    assert main(["merge", str(made["a"]), str(clip["mask"]), "--out", str(out)]) == 2
+    assert "not a readable .npz" in capsys.readouterr().err
+    assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+def test_frame_range_measures_only_that_range(clip, tmp_path) -> None:
+    out = tmp_path / "range.csv"
+    assert main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--frames", "20:26",
+                 "--reference-frame", "0", "--out", str(out), "--no-progress"]) == 0
+    rows = read_csv(out)
+    assert [int(r["frame"]) for r in rows] == list(range(20, 26))
+    dx = np.array([float(r["dx_px"]) for r in rows])
+    assert np.abs(dx - truth_px()[20:26]).max() < 0.05, "measured against frame 0, outside the range"
+
+
+def test_pois_figure_and_counts(clip, tmp_path, capsys) -> None:
+    out = tmp_path / "pois.png"
+    assert main(["pois", str(clip["video"]), "--mask", str(clip["mask"]), "--grid-step", "2",
+                 "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert f"POIs: {12 * 70};" in printed and "harris corners in ROI:" in printed
+    corners = int(printed.split("corners in ROI: ")[1].split()[0])
+    on_mask = int(printed.split("(")[1].split()[0])
+    assert corners > 10 and 0 < on_mask < corners  # the texture is everywhere, the mask a band
+    image = cv2.imread(str(out))
+    assert image is not None and image.shape[1] > 2 * image.shape[0]  # side by side
+
+
+def test_plot_marks_the_dominant_frequency(tmp_path, capsys) -> None:
+    time_s = np.arange(300) / 30.0
+    paths = []
+    for name, (f_hz, drift) in {"dense": (0.8, 0.0), "klt": (0.8, 0.3)}.items():
+        path = tmp_path / f"{name}.csv"
+        dx = 2 * np.sin(2 * np.pi * f_hz * time_s) + drift * time_s
+        with path.open("w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "valid"])
+            for i, t in enumerate(time_s):
+                writer.writerow([i, t, dx[i], 0.1 * dx[i], "nan", "nan", int(not 100 <= i < 110)])
+        paths.append(str(path))
+    out = tmp_path / "plot.png"
+    assert main(["plot", *paths, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    for line in printed[:2]:
+        hz = float(line.split("dx ")[1].split(" Hz")[0])
+        assert hz == pytest.approx(0.8, abs=0.01), line
+    assert out.is_file() and cv2.imread(str(out)) is not None
+    assert main(["plot", paths[0], "--units", "mm", "--out", str(tmp_path / "mm.png")]) == 2
+
+
+def test_outputs_sharing_a_name_are_refused_before_tracking(clip, tmp_path, capsys) -> None:
+    same = tmp_path / "same.npz"
+    assert main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis",
+                 "--out", str(tmp_path / "o.csv"), "--save-poi-tracks", str(same),
+                 "--raw-tracks", str(same), "--no-progress"]) == 2
+    assert "two outputs share a name" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []

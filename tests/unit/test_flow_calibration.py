@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 import pytest
@@ -9,8 +11,10 @@ import pytest
 from flow.calibration import Undistorter, calibrate, scale_from_known_length
 from flow.io import InputError, Roi
 
-SIZE = (480, 360)
-K = np.array([[420.0, 0, 236.0], [0, 415.0, 183.0], [0, 0, 1]])
+# 960 x 720: at half that size the corner detector's own error (~0.02 px, from the curved,
+# blurred edges) still moves k2 by up to ~2.5 %; here it stays within ~0.4 %.
+SIZE = (960, 720)
+K = np.array([[840.0, 0, 472.0], [0, 830.0, 366.0], [0, 0, 1]])
 DIST = np.array([-0.25, 0.08, 0.0, 0.0, 0.0])
 BOARD = (8, 6)  # inner corners
 SQUARE_MM = 20.0
@@ -18,71 +22,98 @@ PX_PER_MM = 12
 
 
 def board_texture() -> np.ndarray:
+    """The board (one white square of margin), pre-blurred as a lens/sensor would area-average it."""
     cols, rows = BOARD[0] + 1, BOARD[1] + 1
-    margin = 1  # one white square around the board
+    margin = 1
     h, w = (rows + 2 * margin) * SQUARE_MM * PX_PER_MM, (cols + 2 * margin) * SQUARE_MM * PX_PER_MM
     y, x = np.mgrid[0:int(h), 0:int(w)] / (SQUARE_MM * PX_PER_MM) - margin
     black = ((np.floor(x) + np.floor(y)) % 2 == 0) & (x >= 0) & (y >= 0) & (x < cols) & (y < rows)
-    return np.where(black, 30, 225).astype(np.uint8)
+    return cv2.GaussianBlur(np.where(black, 30, 225).astype(np.uint8), (0, 0), PX_PER_MM * 0.4)
+
+
+@functools.lru_cache(maxsize=1)
+def pixel_rays() -> np.ndarray:
+    """Ray direction ``(x, y, 1)`` of every (distorted) pixel: the same for every view."""
+    w, h = SIZE
+    pix = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 1, 2).astype(np.float64)
+    normalised = cv2.undistortPoints(pix, K, DIST, None, None, None,
+                                     (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10))
+    return np.concatenate([normalised.reshape(-1, 2), np.ones((w * h, 1))], axis=1)
 
 
 def render_view(texture: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """Ray-trace each (distorted) pixel onto the board plane and sample the texture."""
     w, h = SIZE
-    pix = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 1, 2).astype(np.float64)
-    normalised = cv2.undistortPoints(pix, K, DIST, None, None, None,
-                                         (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10))
-    rays = np.concatenate([normalised.reshape(-1, 2), np.ones((w * h, 1))], axis=1)
     rot, _ = cv2.Rodrigues(rvec)
-    rays_b = rays @ rot  # R^T r
+    rays_b = pixel_rays() @ rot  # R^T r
     origin_b = -rot.T @ tvec.ravel()  # camera centre in board coordinates
     s = -origin_b[2] / rays_b[:, 2]
     points = origin_b + s[:, None] * rays_b  # board plane, mm; corner (0,0) is the first inner corner
     offset_mm = 2 * SQUARE_MM  # margin square plus first board square
-    map_x = ((points[:, 0] + offset_mm) * PX_PER_MM).reshape(h, w).astype(np.float32)
-    map_y = ((points[:, 1] + offset_mm) * PX_PER_MM).reshape(h, w).astype(np.float32)
-    # Area-average the fine texture by blurring first, as a lens/sensor would.
-    blurred = cv2.GaussianBlur(texture, (0, 0), PX_PER_MM * 0.4)
-    return cv2.remap(blurred, map_x, map_y, cv2.INTER_LINEAR, borderValue=225)
+    # Texel i holds the board at i / PX_PER_MM, so a square edge falls between texels i - 1
+    # and i, at i - 1/2 once interpolated: sample half a texel earlier to put it back (else
+    # every corner sits ~0.07 px up-left of the truth and k2 comes out ~3 % low).
+    map_x = ((points[:, 0] + offset_mm) * PX_PER_MM - 0.5).reshape(h, w).astype(np.float32)
+    map_y = ((points[:, 1] + offset_mm) * PX_PER_MM - 0.5).reshape(h, w).astype(np.float32)
+    return cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderValue=225)
 
 
-def make_views(folder) -> None:
-    texture = board_texture()
-    rng = np.random.default_rng(0)
+def board_poses(n_views: int, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Board poses that fill the frame, tilted up to ~30 degrees, the whole board in view.
+
+    Close, well-spread views reach the image corners, where k2 shows (r^4): with
+    views only near the centre, k2 is poorly determined.
+    """
+    rng = np.random.default_rng(seed)
     centre = np.array([BOARD[0] - 1, BOARD[1] - 1, 0]) * SQUARE_MM / 2
-    for i in range(16):
+    # Corners of the outer squares, one square beyond the inner corners.
+    outline = np.array([[-1, -1, 0], [BOARD[0], -1, 0], [-1, BOARD[1], 0], [BOARD[0], BOARD[1], 0]],
+                       float) * SQUARE_MM
+    poses = []
+    while len(poses) < n_views:
         rvec = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3)])
         rot, _ = cv2.Rodrigues(rvec)
-        distance = rng.uniform(230, 300)
-        shift = np.array([rng.uniform(-80, 80), rng.uniform(-60, 60), distance])
+        shift = np.array([rng.uniform(-120, 120), rng.uniform(-90, 90), rng.uniform(180, 260)])  # mm
         tvec = shift - rot @ centre
-        image = render_view(texture, rvec, tvec)
-        cv2.imwrite(str(folder / f"view{i:02d}.png"), image)
+        corners, _ = cv2.projectPoints(outline, rvec, tvec, K, DIST)
+        corners = corners.reshape(-1, 2)
+        if (corners > 4).all() and (corners < np.array(SIZE) - 4).all():
+            poses.append((rvec, tvec))
+    return poses
 
 
 @pytest.fixture(scope="module")
-def views(tmp_path_factory):
+def view_images() -> list[np.ndarray]:
+    texture = board_texture()
+    return [render_view(texture, rvec, tvec) for rvec, tvec in board_poses(30)]
+
+
+@pytest.fixture(scope="module")
+def views(tmp_path_factory, view_images):
     folder = tmp_path_factory.mktemp("board")
-    make_views(folder)
+    for i, image in enumerate(view_images):
+        cv2.imwrite(str(folder / f"view{i:02d}.png"), image)
     return folder
+
+
+def check_calibration(result: dict) -> None:
+    camera = np.asarray(result["camera_matrix"])
+    dist = np.asarray(result["dist_coeffs"])
+    print("calibration", camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2], dist, result["rms_px"])
+    for label, got, want in [("fx", camera[0, 0], K[0, 0]), ("fy", camera[1, 1], K[1, 1]),
+                             ("cx", camera[0, 2], K[0, 2]), ("cy", camera[1, 2], K[1, 2]),
+                             ("k1", dist[0], DIST[0]), ("k2", dist[1], DIST[1])]:
+        assert abs(got - want) / abs(want) < 0.01, (label, got, want)
+    # The true p1 = p2 = 0, so "within 1 % of the value" means an absolute bound: 5e-5 moves
+    # a point at the image corner (r ~ 0.7) by 2 p r^2 f ~ 0.04 px, below corner-detection noise.
+    assert np.abs(dist[2:4]).max() < 5e-5, dist[2:4]
+    assert result["rms_px"] < 0.1
 
 
 def test_calibration_recovers_intrinsics_and_distortion(views) -> None:
     result = calibrate(views, board=BOARD, square_mm=SQUARE_MM)
-    camera = np.asarray(result["camera_matrix"])
-    assert result["views_used"] >= 10
-    for got, want in [(camera[0, 0], K[0, 0]), (camera[1, 1], K[1, 1]),
-                      (camera[0, 2], K[0, 2]), (camera[1, 2], K[1, 2])]:
-        assert abs(got - want) / want < 0.01, (got, want)
-    dist = np.asarray(result["dist_coeffs"])
-    print("calibration", camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2], dist, result["rms_px"])
-    assert abs(dist[0] - DIST[0]) / abs(DIST[0]) < 0.01
-    assert abs(dist[1] - DIST[1]) / abs(DIST[1]) < 0.05
-    # The distortion where it matters: the radial displacement within the image.
-    r = np.linspace(0, 0.5, 50)
-    radial = lambda d: r * (d[0] * r**2 + d[1] * r**4 + d[4] * r**6)  # noqa: E731
-    assert np.abs(radial(dist) - radial(DIST)).max() < 0.01 * np.abs(radial(DIST)).max()
-    assert result["rms_px"] < 0.3
+    assert result["views_used"] == 30
+    check_calibration(result)
 
 
 def test_calibrate_cli_writes_json_and_rejects_missing_board(views, tmp_path) -> None:
@@ -94,6 +125,30 @@ def test_calibrate_cli_writes_json_and_rejects_missing_board(views, tmp_path) ->
     bad = tmp_path / "bad.json"
     assert main(["calibrate", str(views), "--board", "5x3", "--square-mm", "20", "--out", str(bad)]) == 2
     assert not bad.exists()
+    assert main(["calibrate", str(views), "--board", "8x6", "--square-mm", "-20", "--out", str(bad)]) == 2
+    assert not bad.exists()
+
+
+def test_calibrate_from_a_video(tmp_path, view_images) -> None:
+    """A video of the board: frames without it are skipped, --step thins near-duplicates."""
+    import json
+
+    from flow.cli import main
+
+    video = tmp_path / "board.mkv"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, SIZE, True)
+    assert writer.isOpened()
+    blank = np.full(SIZE[::-1], 225, np.uint8)
+    for image in view_images:
+        for frame in (image, image, blank):  # each view held for two frames, then the board leaves
+            writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    out = tmp_path / "calib.json"
+    assert main(["calibrate", str(video), "--board", "8x6", "--square-mm", "20", "--step", "3",
+                 "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["views_used"] == 30
+    check_calibration(result)
 
 
 def test_roi_undistortion_matches_full_frame_undistortion() -> None:
@@ -115,3 +170,27 @@ def test_scale_from_known_length() -> None:
         scale_from_known_length(-1.0, "0,0,1,1")
     with pytest.raises(InputError):
         scale_from_known_length(5.0, "1,1,1,1")
+
+
+def test_mask_and_points_drawn_on_raw_frames_follow_the_undistortion() -> None:
+    """Masks and --between points are raw video pixels; the flow runs on undistorted frames."""
+    calibration = {"camera_matrix": K.tolist(), "dist_coeffs": DIST.tolist(), "image_size": list(SIZE)}
+    roi = Roi(40, 40, 300, 220)  # near the top-left corner, where the distortion is strong
+    undistorter = Undistorter(calibration, roi, SIZE)
+    raw = np.zeros((roi.height, roi.width), bool)
+    raw[60:100, 60:140] = True  # full frame x 100..180, y 100..140
+    mapped = undistorter.map_mask(raw)
+    ys, xs = np.mgrid[62:98:4, 62:138:4]  # raw points inside the rectangle
+    ideal = undistorter.undistort_points(np.stack([xs.ravel() + roi.x, ys.ravel() + roi.y], 1))
+    cols, rows = np.round(ideal[:, 0] - roi.x).astype(int), np.round(ideal[:, 1] - roi.y).astype(int)
+    assert mapped[rows, cols].all()
+    # The ideal position of a raw point is where the undistorted frame shows it.
+    assert np.allclose(undistorter.map_x[rows, cols], xs.ravel(), atol=0.6)
+    assert np.allclose(undistorter.map_y[rows, cols], ys.ravel(), atol=0.6)
+    # Barrel distortion: the undistorted rectangle is larger and moved outwards (up-left here).
+    assert mapped.sum() > 1.1 * raw.sum()
+    assert np.argwhere(mapped).mean(axis=0)[1] < np.argwhere(raw).mean(axis=0)[1] - 3
+    # A known length between raw points is measured in undistorted pixels.
+    plain = scale_from_known_length(50.0, "100,100,180,100")
+    corrected = scale_from_known_length(50.0, "100,100,180,100", undistorter.undistort_points)
+    assert corrected < 0.95 * plain

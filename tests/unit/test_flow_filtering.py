@@ -97,3 +97,97 @@ def test_incoherent_frames_are_flagged_even_with_a_low_residual():
     dy[blocked] = rng.normal(0, 8.0, (blocked.size, points))
     flagged = flag_incoherent(poi_spread(dx, dy))
     assert np.flatnonzero(flagged).tolist() == blocked.tolist()
+
+
+def _tracks(dx: np.ndarray, dy: np.ndarray, residual: np.ndarray | None = None):
+    from flow.track import Tracks
+
+    n_frames, n_points = dx.shape
+    return Tracks(np.arange(n_frames), np.arange(n_frames) / 30.0, dx.astype(np.float32), dy.astype(np.float32),
+                  np.full(n_frames, 1.5) if residual is None else residual, np.arange(n_points, dtype=np.float32),
+                  np.zeros(n_points, np.float32), 0, np.zeros(n_points), np.zeros(n_points))
+
+
+def test_half_background_mask_with_a_large_transient_stays_valid() -> None:
+    """Background POIs in the mask stay put while the structure jumps: that is motion, not occlusion."""
+    from flow.track import measure
+
+    rng = np.random.default_rng(4)
+    frames = 120
+    motion = 0.3 * np.sin(np.arange(frames) / 5.0)
+    motion[60:66] += np.array([4, 9, 12, 10, 6, 2.0])  # an impact
+    structure = motion[:, None] + rng.normal(0, 0.03, (frames, 100))
+    background = rng.normal(0, 0.03, (frames, 100))
+    dx = np.hstack([structure, background])
+    dy = rng.normal(0, 0.03, dx.shape)
+    result = measure(_tracks(dx, dy))
+    assert result.valid.all(), np.flatnonzero(~result.valid)
+    assert result.filtered.kept[:100].all() and not result.filtered.kept[100:].any()
+    assert np.abs(result.filtered.dx - motion).max() < 0.05
+
+
+def test_bright_occluder_is_still_flagged_with_background_in_the_mask() -> None:
+    """The same mask, and frames whose flow is garbage everywhere: flagged, and the filters unspoiled."""
+    from flow.track import measure
+
+    rng = np.random.default_rng(5)
+    frames = 120
+    motion = 2.0 * np.sin(np.arange(frames) / 6.0)
+    dx = np.hstack([motion[:, None] + rng.normal(0, 0.03, (frames, 100)), rng.normal(0, 0.03, (frames, 100))])
+    dy = rng.normal(0, 0.03, dx.shape)
+    blocked = np.arange(40, 48)
+    dx[blocked] = rng.normal(0, 8.0, (blocked.size, 200))
+    dy[blocked] = rng.normal(0, 8.0, (blocked.size, 200))
+    result = measure(_tracks(dx, dy))
+    assert np.flatnonzero(~result.valid).tolist() == blocked.tolist()
+    assert result.filtered.kept[:100].all() and not result.filtered.kept[100:].any()
+    ok = result.valid
+    assert np.abs(result.filtered.dx[ok] - motion[ok]).max() < 0.05
+
+
+def test_poi_kept_frac_follows_each_frame() -> None:
+    """The fraction of kept POIs that are measured and agree with the frame: per frame, not per POI."""
+    from flow.track import measure
+
+    rng = np.random.default_rng(6)
+    frames, points = 60, 100
+    motion = 3.0 * np.sin(np.arange(frames) / 4.0)
+    dx = motion[:, None] + rng.normal(0, 0.05, (frames, points))
+    dy = rng.normal(0, 0.05, (frames, points))
+    dx[10, :30] = np.nan  # 30 POIs lost in frame 10
+    dx[20, :25] += rng.choice([-1, 1], 25) * rng.uniform(3, 6, 25)  # 25 POIs mismatched in frame 20
+    result = measure(_tracks(dx, dy))
+    assert result.filtered.kept.all()
+    frac = result.poi_kept_frac
+    assert frac[10] == pytest.approx(0.70) and frac[20] == pytest.approx(0.75)
+    others = np.setdiff1d(np.arange(frames), [10, 20])
+    assert (frac[others] == 1.0).all()
+    assert 0 < result.consistency_band_px < 1.0
+
+
+def test_filters_in_small_blocks_match_one_block(monkeypatch) -> None:
+    """Long runs are filtered block by block from disk; the numbers must not depend on the blocks."""
+    import flow.filtering as filtering
+    from flow.track import DiskMatrix, PoiStore, measure
+
+    truth, dx, dy = planted()
+    dx[60:, 7] = np.nan
+    store = PoiStore(dx.shape[1])
+    for row_x, row_y in zip(dx, dy, strict=True):
+        store.append(row_x, row_y)
+    disk_x, disk_y = store.arrays()
+    assert isinstance(disk_x, DiskMatrix) and disk_x.shape == dx.shape
+    assert np.array_equal(np.asarray(disk_x), dx.astype(np.float32), equal_nan=True)
+    assert np.array_equal(disk_y[5:9, [2, 4]], dy[5:9, [2, 4]].astype(np.float32))
+    assert np.array_equal(disk_y[-1], dy[-1].astype(np.float32))
+    whole = measure(_tracks(dx, dy))
+    monkeypatch.setattr(filtering, "CHUNK_BYTES", 3 * dx.shape[1] * 8 * 8)  # three frames a block
+    assert len(list(filtering.block_rows(*dx.shape))) == 67
+    tracks = _tracks(dx, dy)
+    tracks.dx, tracks.dy = disk_x, disk_y
+    blocked = measure(tracks)
+    assert np.array_equal(whole.filtered.kept, blocked.filtered.kept)
+    assert np.allclose(whole.filtered.mcr, blocked.filtered.mcr, equal_nan=True, atol=1e-12)
+    for name in ("valid", "poi_kept_frac", "flow_spread_px"):
+        assert np.allclose(getattr(whole, name), getattr(blocked, name), equal_nan=True), name
+    assert np.allclose(whole.filtered.dx, blocked.filtered.dx, atol=1e-12)

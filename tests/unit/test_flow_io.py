@@ -52,3 +52,36 @@ def test_masks_full_size_roi_size_rect_polygon_and_grid(tmp_path) -> None:
     assert len(poi_coordinates(a, grid_step=2)) == 4  # rows 2, 4 x cols 2, 4 of the ROI
     with pytest.raises(InputError, match="selects no pixel"):
         poi_coordinates(np.zeros((4, 4), bool))
+
+
+def test_frame_ranges_and_fps_checks(tmp_path) -> None:
+    for i in range(5):
+        cv2.imwrite(str(tmp_path / f"{i:02d}.png"), np.full((6, 8), 40 * i, np.uint8))
+    source = FrameSource(tmp_path, fps=10.0)
+    picked = list(source.frames(1, 4))
+    assert [f[0] for f in picked] == [1, 2, 3]
+    assert [f[1] for f in picked] == pytest.approx([0.1, 0.2, 0.3])
+    assert [int(f[2][0, 0]) for f in picked] == [40, 80, 120]
+    assert [f[0] for f in source.frames(3)] == [3, 4]
+    with pytest.raises(InputError, match="pass --fps"):
+        FrameSource(tmp_path)
+    assert [f[1] for f in FrameSource(tmp_path, require_fps=False)] == [0, 1, 2, 3, 4]
+    for bad in (0.0, -5.0, float("nan")):
+        with pytest.raises(InputError, match="is not positive"):
+            FrameSource(tmp_path, fps=bad)
+
+
+def test_video_fps_is_checked_too_and_ranges_skip_decoding(tmp_path) -> None:
+    video = tmp_path / "v.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (16, 12), True)
+    for i in range(6):
+        writer.write(np.full((12, 16, 3), 40 * i, np.uint8))
+    writer.release()
+    with pytest.raises(InputError, match="--fps -1.0 is not positive"):
+        FrameSource(video, fps=-1.0)
+    source = FrameSource(video)
+    picked = list(source.frames(2, 5))
+    assert [f[0] for f in picked] == [2, 3, 4]
+    assert [f[1] for f in picked] == pytest.approx([0.08, 0.12, 0.16])
+    assert abs(int(picked[0][2].mean()) - 80) <= 3
+    assert not source.truncated  # stopped early: nothing to judge

@@ -10,9 +10,16 @@ from flow.io import FrameSource
 from flow.methods.klt import KLT
 from flow.track import measure, track_dense, track_sparse
 
-OTHER_ENGINEER = {"deepflow", "deepmatching"}
-DENSE = [n for n in registry.available()
-         if registry._REGISTRY[n].kind == "dense" and n not in OTHER_ENGINEER]
+# The sub-pixel test below skips these two: `deepflow` has its own, stricter accuracy tests
+# (tests/unit/test_deepflow.py), and `deepmatching` is an ablation whose matches sit on an
+# integer grid of atomic patches (interpolated between them), so 0.05 px on a 0.1 px shift is
+# not what it is built for; its accuracy is covered in tests/unit/test_deepmatching.py.
+OTHER_TESTS = {"deepflow", "deepmatching"}
+REFERENCE_FRAME_METHODS = [n for n in registry.available() if registry._REGISTRY[n].kind == "dense"]
+DENSE = [n for n in REFERENCE_FRAME_METHODS if n not in OTHER_TESTS]
+# Parameters that keep the slow methods to a second or two on the 40-frame drift sequence
+# (tvl1 at its defaults takes ~2 minutes there); accuracy stays well inside the bound.
+FAST_PARAMS = {"deepflow": {"preset": "fast"}, "tvl1": {"warps": 2, "scales": 2, "epsilon": 0.02}}
 
 
 def texture(width: int, height: int, dx: float = 0.0, dy: float = 0.0, *, seed: int = 0,
@@ -80,26 +87,36 @@ def _drift_sequence(folder, n_frames: int = 40) -> np.ndarray:
     return truth
 
 
-def test_klt_drifts_where_reference_frame_methods_do_not(tmp_path) -> None:
-    truth = _drift_sequence(tmp_path)
+@pytest.fixture(scope="module")
+def drift(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("drift")
+    truth = _drift_sequence(folder)
     mask = np.zeros((120, 160), bool)
     mask[50:80, 10:150] = True
-    poi_xy = np.stack(np.nonzero(mask)[::-1], axis=1)[::7]
-    errors = {}
-    for name in ("klt", "dis"):
-        source = FrameSource(tmp_path, fps=30.0)
-        if name == "klt":
-            tracks = track_sparse(source, KLT(), mask)
-            result = measure(tracks, filter_enabled=False)
-        else:
-            tracks = track_dense(source, lambda: registry.get_method("dis"), poi_xy)
-            result = measure(tracks)
-        assert result.valid.all()
-        errors[name] = np.abs(result.filtered.dx - truth)
+    return folder, truth, mask
+
+
+def test_klt_drifts(drift) -> None:
+    folder, truth, mask = drift
+    result = measure(track_sparse(FrameSource(folder, fps=30.0), KLT(), mask), filter_enabled=False)
+    assert result.valid.all()
     # KLT averages moving-background corners and integrates frame-to-frame: at the end,
-    # where the structure is back at rest, it reports motion; the reference method does not.
-    assert errors["klt"][-5:].mean() > 0.5
-    assert errors["dis"].max() < 0.1
+    # where the structure is back at rest, it reports motion.
+    assert np.abs(result.filtered.dx - truth)[-5:].mean() > 0.5
+
+
+@pytest.mark.parametrize("name", REFERENCE_FRAME_METHODS)
+def test_reference_frame_methods_do_not_drift(drift, name: str) -> None:
+    """Same sequence as :func:`test_klt_drifts`: every frame against the reference, no drift."""
+    folder, truth, mask = drift
+    poi_xy = np.stack(np.nonzero(mask)[::-1], axis=1)[::7]
+    params = FAST_PARAMS.get(name, {})
+    tracks = track_dense(FrameSource(folder, fps=30.0), lambda: registry.get_method(name, **params), poi_xy)
+    result = measure(tracks)
+    assert result.valid.all()
+    error = np.abs(result.filtered.dx - truth)
+    assert error.max() < 0.1, f"{name}: max error {error.max():.3f} px"
+    assert error[-5:].mean() < 0.06, f"{name}: {error[-5:].mean():.3f} px off at the end"
 
 
 def test_klt_ref_follows_features_against_reference(tmp_path) -> None:
