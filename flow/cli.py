@@ -29,7 +29,7 @@ from refflow.io import atomic_paths, json_text, versions, write_json
 
 EXIT_USAGE = 2
 CSV_COLUMNS = ("frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "valid",
-               "poi_kept_frac", "residual", "flow_spread_px")
+               "poi_kept_frac", "residual", "flow_spread_px", "camera_dx_px", "camera_dy_px")
 
 
 def _default_method() -> tuple[str, str | None]:
@@ -86,6 +86,33 @@ def _mask_for(args: argparse.Namespace, source: FrameSource, undistort: Any) -> 
     else:
         mask = poi.polygon_mask(args.polygon, roi=source.roi)
     return undistort.map_mask(mask) if undistort is not None else mask
+
+
+def _background_for(args: argparse.Namespace, source: FrameSource, undistort: Any,
+                    poi_mask: np.ndarray) -> Any:
+    """The static points of --background-mask/--background-rect (None without them)."""
+    from flow import poi
+    from flow.background import Background
+
+    if args.background_mask and args.background_rect:
+        raise InputError("pass one of --background-mask and --background-rect, not both")
+    if args.background_mask:
+        mask = poi.load_mask(args.background_mask, frame_size=source.size, roi=source.roi,
+                             what="background mask", instead="--background-rect")
+    elif args.background_rect:
+        mask = poi.rect_mask(args.background_rect, roi=source.roi)
+    else:
+        return None
+    if undistort is not None:
+        mask = undistort.map_mask(mask)
+    overlap = int((mask & poi_mask).sum())
+    if overlap:
+        raise InputError(f"the background region overlaps the POIs in {overlap} pixels: mark only "
+                         "parts of the scene that do not move (a wall, the ground), away from the structure")
+    if mask.sum() < 3:
+        raise InputError("the background region holds no pixel inside the ROI: mark a static area "
+                         "within --roi")
+    return Background.from_mask(mask, model=args.background_model)
 
 
 def _method_params(args: argparse.Namespace, name: str) -> dict[str, Any]:
@@ -241,7 +268,9 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
             "units": {"time_s": "s", "dx_px": "px, + = image right", "dy_px": "px, + = image down",
                       "dx_mm": "mm", "dy_mm": "mm", "residual": "grey levels (0-255)",
                       "flow_spread_px": "px (1.4826 MAD over kept POIs)",
-                      "poi_kept_frac": "fraction of kept POIs measured and consistent with the frame's median"},
+                      "poi_kept_frac": "fraction of kept POIs measured and consistent with the frame's median",
+                      "camera_dx_px": "px, the camera's image motion at the POIs (removed from dx_px); "
+                                      "NaN without --background-mask"},
             "columns": list(CSV_COLUMNS),
             "notes": notes + result.filtered.notes,
             "versions": versions(),
@@ -311,12 +340,16 @@ def cmd_track(args: argparse.Namespace) -> int:
     if sparse and frames is not None:
         raise InputError(f"--frames needs a reference-frame (dense) method: {name} follows its features "
                          "from frame to frame, so its run cannot be split")
+    if sparse and (args.background_mask or args.background_rect):
+        raise InputError(f"--background-mask/--background-rect need a dense method: {name} picks its own "
+                         "features (the paper's KLT baseline has no camera-motion compensation)")
     _output_names(args)
     source = _open(args)
     undistort, calibration = _undistorter(args, source)
     mm_per_px, scale_source = _scale(args, undistort.undistort_points if undistort is not None else None)
     mask = _mask_for(args, source, undistort)
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
+    background = _background_for(args, source, undistort, mask)
     # The per-POI store goes beside the output: a real disk, unlike a memory-backed /tmp.
     store_dir = Path(args.out or args.raw_tracks).resolve().parent
     store_dir = store_dir if store_dir.is_dir() else None
@@ -331,7 +364,8 @@ def cmd_track(args: argparse.Namespace) -> int:
             tracks = track.track_dense(source, lambda: _build_method(name, params), poi_xy,
                                        reference_frame=args.reference_frame, jobs=args.jobs,
                                        max_frames=args.max_frames, frames=frames, undistort=undistort,
-                                       progress=not args.no_progress, store_dir=store_dir)
+                                       progress=not args.no_progress, store_dir=store_dir,
+                                       background=background)
     notes.extend(source.notes)
     for warning in caught:
         notes.append(str(warning.message))
@@ -342,6 +376,9 @@ def cmd_track(args: argparse.Namespace) -> int:
     calibration_info = _calibration_summary(args, calibration)
     poi_info = {"count": int(len(tracks.x_px)), "source": "features" if sparse else "mask",
                 "mask_pixels": int(mask.sum()), "grid_step": args.grid_step}
+    background_info = None if background is None else {
+        "source": args.background_mask or f"rect {args.background_rect}", "points": int(len(background.xy)),
+        "model": background.model, "requested_model": args.background_model}
     run = {
         "tool": "refflow track",
         "input": {"path": str(args.input), "frame_size": list(source.size), "fps": _finite_or_none(source.fps),
@@ -351,12 +388,13 @@ def cmd_track(args: argparse.Namespace) -> int:
         "method": name, "method_kind": "sparse" if sparse else "dense", "parameters": method.params(),
         "reference_frame": args.reference_frame, "jobs": args.jobs if not sparse else 1,
         "roi": roi.as_dict(), "calibration": calibration_info, "poi": poi_info,
+        "background": background_info,
         "timings": tracks.timings_s,
         # What every part of one run shares; `refflow merge` refuses parts that differ.
         "identity": {"method": name, "parameters": method.params(), "reference_frame": args.reference_frame,
                      "reference_digest": tracks.reference_digest, "roi": roi.as_dict(),
                      "frame_size": list(source.size), "header_frames": tracks.header_frames,
-                     "calibration": calibration_info, "poi": poi_info},
+                     "calibration": calibration_info, "poi": poi_info, "background": background_info},
     }
     result = _write_outputs(args, tracks, run, notes, mm_per_px, scale_source, started)
     written = [p for p in (args.raw_tracks, args.out) if p]
@@ -506,6 +544,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", help="method name (default: deepflow, else deepflow-opencv); see `refflow methods`")
     p.add_argument("--preset", choices=("ultrafast", "fast", "medium"), help="DIS preset")
     p.add_argument("--param", action="append", metavar="KEY=VALUE", help="method parameter (repeatable)")
+    p.add_argument("--background-mask", help="mask PNG of static scene (wall, ground; raw video pixels): "
+                   "the camera's motion measured there is removed from the POIs' (tripod shake, drift)")
+    p.add_argument("--background-rect", help="static region X,Y,W,H (raw full-frame pixels), like --background-mask")
+    p.add_argument("--background-model", choices=("affine", "translation"), default="affine",
+                   help="camera image motion fitted to the background (affine falls back to translation "
+                        "on a narrow strip)")
     _add_measure_options(p, out_required=False)
     p.add_argument("--jobs", type=int, default=1, help="frames measured in parallel (dense methods)")
     p.add_argument("--max-frames", type=int, help="stop before this frame index")

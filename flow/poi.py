@@ -10,20 +10,24 @@ import numpy as np
 from flow.io import InputError, Roi
 
 
-def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi) -> np.ndarray:
-    """Read a mask PNG (full-frame or ROI size) and return it as an ROI-sized bool array."""
+def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: str = "mask",
+              instead: str = "--rect/--polygon") -> np.ndarray:
+    """Read a mask PNG (full-frame or ROI size) and return it as an ROI-sized bool array.
+
+    ``what`` names the mask in messages, ``instead`` the options that can replace it.
+    """
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"mask {str(path)!r} does not exist: check the path or use --rect/--polygon")
+        raise InputError(f"{what} {str(path)!r} does not exist: check the path or use {instead}")
     image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if image is None:
-        raise InputError(f"mask {str(path)!r} cannot be read: save it as an 8-bit PNG")
+        raise InputError(f"{what} {str(path)!r} cannot be read: save it as an 8-bit PNG")
     height, width = image.shape
     if (width, height) == tuple(frame_size):
         image = image[roi.y:roi.y + roi.height, roi.x:roi.x + roi.width]
     elif (width, height) != (roi.width, roi.height):
         raise InputError(
-            f"mask is {width}x{height} but frames are {frame_size[0]}x{frame_size[1]} "
+            f"{what} is {width}x{height} but frames are {frame_size[0]}x{frame_size[1]} "
             f"(ROI {roi.width}x{roi.height}): pass --roi or a full-size mask")
     return image > 127
 

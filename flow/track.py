@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from flow.background import Background
 from flow.filtering import (
     FilterResult,
     block_rows,
@@ -173,6 +174,10 @@ class Tracks:
     truncated: bool = False
     header_frames: int = 0
     reference_digest: str = ""  # hash of the reference image the run compared against
+    # The camera's own image motion at the POIs' centroid (--background-mask), already
+    # taken out of dx, dy; None without a background.
+    camera_dx: np.ndarray | None = None  # (F,) px
+    camera_dy: np.ndarray | None = None
 
     @property
     def reference_row(self) -> int | None:
@@ -274,7 +279,8 @@ def _no_frames(source: FrameSource, start: int, stop: int | None) -> InputError:
 def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndarray, *,
                 reference_frame: int = 0, jobs: int = 1, max_frames: int | None = None,
                 frames: tuple[int, int | None] | None = None, undistort: Undistort = None,
-                progress: bool = False, store_dir: str | Path | None = None) -> Tracks:
+                progress: bool = False, store_dir: str | Path | None = None,
+                background: Background | None = None) -> Tracks:
     """Run a dense method of ``factory()`` on every frame against the reference frame.
 
     Parameters
@@ -295,6 +301,10 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         Stop before frame index ``max_frames``.
     store_dir : path, optional
         Folder of the disk-backed per-POI store (default: the system's temporary folder).
+    background : Background, optional
+        Static points: the camera motion fitted to their flow is subtracted from
+        the POIs' (``Tracks.camera_dx`` records it; the residual stays that of the
+        image motion itself).
     """
     if jobs < 1:
         raise InputError(f"--jobs {jobs} must be >= 1")
@@ -310,14 +320,29 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         idle.put(factory())
     local = threading.local()
 
-    def measure_frame(current: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    poi_points = poi_xy.astype(np.float64)
+    centroid = poi_points.mean(axis=0, keepdims=True)
+
+    def compensate(flow: np.ndarray, dx: np.ndarray, dy: np.ndarray):
+        """POI flow minus the camera's motion, and that motion at the POIs' centroid."""
+        if background is None:
+            return dx, dy, (np.nan, np.nan)
+        bx = flow[background.rows, background.columns, 0]
+        by = flow[background.rows, background.columns, 1]
+        mx, my = background.motion_at(bx, by, np.vstack([poi_points, centroid]))
+        return ((dx - mx[:-1]).astype(np.float32), (dy - my[:-1]).astype(np.float32),
+                (float(mx[-1]), float(my[-1])))
+
+    def measure_frame(current: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, tuple[float, float]]:
         method = getattr(local, "method", None)
         if method is None:
             method = local.method = idle.get_nowait()
         flow = method.calc(reference, current)
         dx = flow[rows_, columns, 0].astype(np.float32)
         dy = flow[rows_, columns, 1].astype(np.float32)
-        return dx, dy, _residual(ref_values, current, xs, ys, dx, dy)
+        residual = _residual(ref_values, current, xs, ys, dx, dy)
+        cdx, cdy, camera = compensate(flow, dx, dy)
+        return cdx, cdy, residual, camera
 
     in_range = start <= reference_frame and (stop is None or reference_frame < stop)
     offset = None
@@ -327,19 +352,22 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         method = idle.get()
         flow = method.calc(reference, reference)
         idle.put(method)
-        offset = (flow[rows_, columns, 0].astype(np.float32).astype(np.float64),
-                  flow[rows_, columns, 1].astype(np.float32).astype(np.float64))
+        own_dx, own_dy, _ = compensate(flow, flow[rows_, columns, 0].astype(np.float32),
+                                       flow[rows_, columns, 1].astype(np.float32))
+        offset = (own_dx.astype(np.float64), own_dy.astype(np.float64))
 
     store = PoiStore(len(poi_xy), directory=store_dir)
     frame_list: list[int] = []
     times: list[float] = []
     residuals: list[float] = []
+    cameras: list[tuple[float, float]] = []
 
-    def collect(index: int, time_s: float, result: tuple[np.ndarray, np.ndarray, float]) -> None:
+    def collect(index: int, time_s: float, result: tuple) -> None:
         frame_list.append(index)
         times.append(time_s)
         store.append(result[0], result[1])
         residuals.append(result[2])
+        cameras.append(result[3])
         bar.update(1)
 
     t1 = time.perf_counter()
@@ -378,9 +406,12 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     if offset is None:
         row = int(np.flatnonzero(frame_index == reference_frame)[0])
         offset = (reference_offset(dx, row), reference_offset(dy, row))
+    camera = np.asarray(cameras, np.float64).reshape(-1, 2) if background is not None else None
     return Tracks(frame_index, np.asarray(times), dx, dy, np.asarray(residuals), xs, ys,
                   reference_frame, offset[0], offset[1], _timings(t0, t1, t2, len(frame_list)),
-                  source.truncated, source.header_frames, image_digest(reference))
+                  source.truncated, source.header_frames, image_digest(reference),
+                  camera_dx=None if camera is None else camera[:, 0],
+                  camera_dy=None if camera is None else camera[:, 1])
 
 
 def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
@@ -582,7 +613,9 @@ def iter_rows(result: Measurement, mm_per_px: float) -> Iterable[dict[str, Any]]
         yield {"frame": int(tr.frame[i]), "time_s": float(tr.time_s[i]), "dx_px": dx, "dy_px": dy,
                "dx_mm": dx * mm_per_px, "dy_mm": dy * mm_per_px, "valid": int(ok),
                "poi_kept_frac": float(result.poi_kept_frac[i]), "residual": float(tr.residual[i]),
-               "flow_spread_px": float(result.flow_spread_px[i])}
+               "flow_spread_px": float(result.flow_spread_px[i]),
+               "camera_dx_px": float(tr.camera_dx[i]) if tr.camera_dx is not None else float("nan"),
+               "camera_dy_px": float(tr.camera_dy[i]) if tr.camera_dy is not None else float("nan")}
 
 
 RAW_FORMAT = "refflow-raw-tracks/1"
@@ -595,10 +628,12 @@ def save_raw_tracks(path: str | Path, tracks: Tracks, meta: dict[str, Any]) -> N
     ROI, calibration, POIs ...) that parts of one run share; :func:`load_raw_tracks`
     checks it. The per-POI matrices are streamed into the file (uncompressed).
     """
+    camera = ({} if tracks.camera_dx is None
+              else {"camera_dx_px": tracks.camera_dx, "camera_dy_px": tracks.camera_dy})
     write_npz(path, {"format": np.array(RAW_FORMAT), "meta": np.array(json.dumps(meta, sort_keys=True)),
                      "frame": tracks.frame, "time_s": tracks.time_s, "residual": tracks.residual,
                      "x_px": tracks.x_px, "y_px": tracks.y_px, "offset_dx_px": tracks.offset_dx,
-                     "offset_dy_px": tracks.offset_dy, "dx_px": tracks.dx, "dy_px": tracks.dy})
+                     "offset_dy_px": tracks.offset_dy, **camera, "dx_px": tracks.dx, "dy_px": tracks.dy})
 
 
 @dataclass
@@ -682,12 +717,15 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
     reference_frame = int(first.meta["identity"]["reference_frame"])
     # The reference frame's own row gives the offset where a part holds it (as in a whole run).
     holder = next((p for p in parts if reference_frame in p.small["frame"]), parts[0])
-    concat = {key: np.concatenate([p.small[key] for p in parts]) for key in ("frame", "time_s", "residual")}
+    per_frame = ("frame", "time_s", "residual") + (("camera_dx_px", "camera_dy_px")
+                                                   if "camera_dx_px" in first.small else ())
+    concat = {key: np.concatenate([p.small[key] for p in parts]) for key in per_frame}
     timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts) for key in ("setup_s", "frames_s")}
     timings["frames_per_s"] = len(concat["frame"]) / max(timings["frames_s"], 1e-9)
     tracks = Tracks(concat["frame"], concat["time_s"], dx, dy, concat["residual"],
                     first.small["x_px"], first.small["y_px"], reference_frame,
                     holder.small["offset_dx_px"].astype(np.float64), holder.small["offset_dy_px"].astype(np.float64),
                     timings, any(p.meta["input"]["truncated"] for p in parts),
-                    int(first.meta["input"]["header_frames"]), first.meta["identity"]["reference_digest"])
+                    int(first.meta["input"]["header_frames"]), first.meta["identity"]["reference_digest"],
+                    camera_dx=concat.get("camera_dx_px"), camera_dy=concat.get("camera_dy_px"))
     return tracks, [p.meta for p in parts]

@@ -156,6 +156,16 @@ class BeamRenderer:
             reach = max(reach, (swing + spread * sc.logo_size_mm / 2) / logo_depth)
         return reach
 
+    def background_mask(self, margin_px: float = 12.0) -> np.ndarray:
+        """Static scene a user would mark for camera-motion compensation: every
+        pixel of the window whose line of sight stays ``margin_px`` clear of the
+        band the beam and its logo sweep during the clip (the wall and its fixtures)."""
+        w = self.window
+        vv, uu = np.mgrid[w.y:w.y + w.height, w.x:w.x + w.width].astype(np.float64)
+        x_ray, _ = self.camera.pixel_rays(uu, vv)
+        clear = np.abs(x_ray) > self._beam_reach() + margin_px / self.camera.fx
+        return clear.astype(np.uint8) * 255
+
     def _distractor_layout(self) -> tuple[np.ndarray, np.ndarray]:
         """Centres (world x, z) and kinds of the wall fixtures: inside the
         measurement crop, clear of the beam and logo as the camera sees them."""
@@ -522,8 +532,9 @@ def render_clip(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path,
         ae = AutoExposure(r.cam_cfg)
         spent = {"meter_s": 0.0, "truth_s": 0.0}
         frame_times = []
-        outputs = (video, out_dir / "mask.png", out_dir / "poi_truth.npz", out_dir / "truth.csv")
-        with atomic_paths(*outputs) as (tmp_video, tmp_mask, tmp_npz, tmp_csv):
+        outputs = (video, out_dir / "mask.png", out_dir / "background.png", out_dir / "poi_truth.npz",
+                   out_dir / "truth.csv")
+        with atomic_paths(*outputs) as (tmp_video, tmp_mask, tmp_background, tmp_npz, tmp_csv):
             with VideoWriter(tmp_video, w.width, w.height, r.cam_cfg.fps, codec) as writer, \
                     TruthWriter(tmp_csv, tmp_npz, poi_x_px=r.poi_window_px[:, 0],
                                 poi_y_px=r.poi_window_px[:, 1]) as truth_out:
@@ -542,6 +553,7 @@ def render_clip(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path,
                     spent["truth_s"] += time.perf_counter() - t2
                     frame_times.append(t2 - t1)
             cv2.imwrite(str(tmp_mask), r.mask)
+            cv2.imwrite(str(tmp_background), r.background_mask())
         meta = r.metadata()
         ft = np.array(frame_times) if frame_times else np.zeros(1)
         meta.update({

@@ -685,7 +685,7 @@ def test_flicker_aliases_and_clouds_drift_the_frame_brightness(shapes):
 def test_render_clip_writes_documented_files_streamed(shapes, tmp_path):
     cfg = {**_small_config(shake=True), "codec": {"name": "ffv1"}}
     meta = render_clip(cfg, shapes, tmp_path, max_frames=4, progress=False)
-    assert {p.name for p in tmp_path.iterdir()} == {"video.mkv", "mask.png", "truth.csv",
+    assert {p.name for p in tmp_path.iterdir()} == {"video.mkv", "mask.png", "background.png", "truth.csv",
                                                      "poi_truth.npz", "render.json"}
     with (tmp_path / "truth.csv").open() as fh:
         rows = list(csv.DictReader(fh))
@@ -694,6 +694,14 @@ def test_render_clip_writes_documented_files_streamed(shapes, tmp_path):
     assert len(rows) == 4
     mask = cv2.imread(str(tmp_path / "mask.png"), cv2.IMREAD_UNCHANGED)
     assert mask.shape == (100, 200) and mask.dtype == np.uint8 and mask.max() == 255
+    # the static wall a user would mark: both sides of the beam, clear of the POIs by a margin
+    background = cv2.imread(str(tmp_path / "background.png"), cv2.IMREAD_UNCHANGED)
+    assert background.shape == mask.shape and background.dtype == np.uint8
+    cols = np.flatnonzero(background.max(axis=0))
+    poi_cols = np.flatnonzero(mask.max(axis=0))
+    assert cols.min() < poi_cols.min() and cols.max() > poi_cols.max()
+    gap = np.abs(cols[:, None] - poi_cols[None, :]).min()
+    assert gap >= 12 and not (background & mask).any()
     r = BeamRenderer(cfg, shapes)
     try:
         raw = r.frame(0, r.gains(1)[0])
