@@ -23,7 +23,10 @@ Pipeline
    (current to reference) maps them back to where they started.
 
 Work is done on an image downscaled by ``downscale`` (2 by default, as in the
-original), with numba kernels parallel over the patch grid.
+original), with numba kernels. The atomic correlations of both directions
+come from one set of per-pixel descriptor products (see :func:`_atomic_both`);
+the two halves of that work, then the two directions' aggregation and
+backtracking, run side by side on two threads.
 
 References
 ----------
@@ -36,11 +39,15 @@ References
 from __future__ import annotations
 
 import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 
 import cv2
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 ATOMIC = 4  # atomic patch side in (downscaled) pixels
 N_ORIENT = 8
@@ -108,27 +115,32 @@ class MatchGrid:
         ).astype(np.float32)
 
 
-def pixel_descriptors(image: np.ndarray, params: MatchParams) -> np.ndarray:
-    """Per-pixel oriented-gradient descriptors, shape (H, W, 8), float32."""
+def _descriptor_planes(image: np.ndarray, params: MatchParams) -> np.ndarray:
+    """Per-pixel oriented-gradient descriptors as planes, shape (8, H, W), float32."""
     im = image.astype(np.float32)
     if params.presmooth_sigma > 0:
         im = cv2.GaussianBlur(im, (0, 0), params.presmooth_sigma)
     gx = cv2.Sobel(im, cv2.CV_32F, 1, 0, ksize=1, borderType=cv2.BORDER_REPLICATE) * 0.5
     gy = cv2.Sobel(im, cv2.CV_32F, 0, 1, ksize=1, borderType=cv2.BORDER_REPLICATE) * 0.5
-    out = np.empty(im.shape + (N_ORIENT,), np.float32)
+    out = np.empty((N_ORIENT,) + im.shape, np.float32)
     for k in range(N_ORIENT):
         theta = 2.0 * math.pi * k / N_ORIENT
         proj = np.maximum(math.cos(theta) * gx + math.sin(theta) * gy, 0.0)
         if params.desc_sigma > 0:
             proj = cv2.GaussianBlur(proj, (0, 0), params.desc_sigma)
-        out[..., k] = proj
+        out[k] = proj
     np.power(out, params.desc_power, out=out)
     return out
 
 
-def _patch_norms(desc: np.ndarray) -> np.ndarray:
-    """L2 norm of every 4x4 patch of ``desc``, indexed by its top-left pixel."""
-    sq = np.einsum("yxc,yxc->yx", desc, desc, dtype=np.float64)
+def pixel_descriptors(image: np.ndarray, params: MatchParams) -> np.ndarray:
+    """Per-pixel oriented-gradient descriptors, shape (H, W, 8), float32."""
+    return np.moveaxis(_descriptor_planes(image, params), 0, -1)
+
+
+def _patch_norms(planes: np.ndarray) -> np.ndarray:
+    """L2 norm of every 4x4 patch of the descriptor ``planes``, indexed by its top-left pixel."""
+    sq = np.einsum("cyx,cyx->yx", planes, planes, dtype=np.float64)
     ii = np.zeros((sq.shape[0] + 1, sq.shape[1] + 1), np.float64)
     ii[1:, 1:] = sq.cumsum(0).cumsum(1)
     a = ATOMIC
@@ -136,83 +148,168 @@ def _patch_norms(desc: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(s, 0.0)).astype(np.float32)
 
 
-@njit(parallel=True, cache=True, fastmath=True)
-def _atomic_responses(f1, f2, n1, n2, ny, nx, R):
-    # Rows of a 4x4 patch of 8-orientation descriptors are 32 contiguous
-    # floats; a fixed-length inner loop lets LLVM vectorise the dot product.
-    H, W, C = f2.shape
-    row = 4 * N_ORIENT
-    g1 = f1.reshape(H, W * C)
-    g2 = f2.reshape(H, W * C)
-    D = 2 * R + 1
-    out = np.zeros((ny, nx, D, D), np.float32)
-    for gi in prange(ny):
-        y0 = 4 * gi
-        patch = np.empty((4, row), np.float32)
-        for gj in range(nx):
-            x0 = 4 * gj
-            na = n1[y0, x0]
-            if na <= 1e-6:
-                continue
-            for a in range(4):
-                for t in range(row):
-                    patch[a, t] = g1[y0 + a, x0 * C + t]
-            for kd in range(D):
-                ty = y0 + kd - R
-                if ty < 0 or ty + 4 > H:
-                    continue
-                for ke in range(D):
-                    tx = x0 + ke - R
-                    if tx < 0 or tx + 4 > W:
-                        continue
-                    nb = n2[ty, tx]
-                    if nb <= 1e-6:
-                        continue
-                    s = np.float32(0.0)
-                    base = tx * C
-                    for a in range(4):
-                        for t in range(row):
-                            s += patch[a, t] * g2[ty + a, base + t]
-                    out[gi, gj, kd, ke] = s / (na * nb)
-    return out
+# Response maps are stored displacement-major, ``C[i, k, l, j]`` for the grid
+# cell (i, j) and displacement (k - R, l - R): a displacement's responses for
+# a row of cells are contiguous, which makes pooling and aggregation unit-stride
+# loops that LLVM vectorises.
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _accumulate_products(f1, f2, y, ty, R, fsum, bsum, add_f, add_b):
+    """Add (or, starting a block, write) the products of row ``y`` of ``f1`` and ``ty`` of ``f2``.
+
+    For each dx = ke - R, ``<f1[:, y, x], f2[:, ty, x + dx]>`` goes to
+    ``fsum[ke, x]`` and ``bsum[ke, x]`` wherever both pixels exist.
+    """
+    W = f1.shape[2]
+    a0, a1, a2, a3 = f1[0, y], f1[1, y], f1[2, y], f1[3, y]
+    a4, a5, a6, a7 = f1[4, y], f1[5, y], f1[6, y], f1[7, y]
+    for ke in range(2 * R + 1):
+        dx = ke - R
+        x1 = max(0, -dx)
+        x2 = x1 + dx
+        fs = fsum[ke, x1:]
+        bs = bsum[ke, x1:]
+        c0, c1, c2, c3 = a0[x1:], a1[x1:], a2[x1:], a3[x1:]
+        c4, c5, c6, c7 = a4[x1:], a5[x1:], a6[x1:], a7[x1:]
+        b0, b1, b2, b3 = f2[0, ty, x2:], f2[1, ty, x2:], f2[2, ty, x2:], f2[3, ty, x2:]
+        b4, b5, b6, b7 = f2[4, ty, x2:], f2[5, ty, x2:], f2[6, ty, x2:], f2[7, ty, x2:]
+        for i in range(min(W, W - dx) - x1):
+            p = (
+                c0[i] * b0[i]
+                + c1[i] * b1[i]
+                + c2[i] * b2[i]
+                + c3[i] * b3[i]
+                + c4[i] * b4[i]
+                + c5[i] * b5[i]
+                + c6[i] * b6[i]
+                + c7[i] * b7[i]
+            )
+            fs[i] = fs[i] + p if add_f else p
+            bs[i] = bs[i] + p if add_b else p
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _normalised_block_sums(rows, x0, n1_row, x1, n2_row, x2, count, out):
+    """``out[j]``: sum of ``rows[x0 + 4j .. + 3]`` over the norms at ``n1_row[x1 + 4j]``, ``n2_row[x2 + 4j]``."""
+    tiny = np.float32(1e-6)
+    for j in range(count):
+        x = x0 + 4 * j
+        s = rows[x] + rows[x + 1] + rows[x + 2] + rows[x + 3]
+        na = n1_row[x1 + 4 * j]
+        nb = n2_row[x2 + 4 * j]
+        out[j] = s / (na * nb) if (na > tiny and nb > tiny) else 0.0
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _atomic_both(f1, f2, n1, n2, R, kd0, kd1, fwd, bwd):
+    """Atomic responses of both directions from one pass over the displacements.
+
+    ``f1``, ``f2`` are descriptor planes (8, H, W). The per-pixel product
+    ``P_d(y, x) = <f1(y, x), f2(y + dy, x + dx)>`` summed over a 4x4 block is
+    the forward correlation of the reference patch at that block when the
+    block is on the reference's grid, and the backward correlation (current
+    to reference, displacement -d) of the current frame's grid patch at
+    ``(y + dy, x + dx)`` when that is on the current frame's grid. Both come
+    from the same products, which halves the multiply-adds. For one dy the
+    two rows multiplied stay in L1 while dx runs over the window, and the
+    products are summed straight into per-block column sums.
+
+    Fills the rows dy = kd - R, kd0 <= kd < kd1, of the forward and backward
+    response maps ``fwd``, ``bwd`` (zeroed, each (ny, D, D, nx) with
+    D = 2R + 1) with correlations normalised by the patch norms; entries
+    whose window leaves the image or whose patch is blank stay 0.
+    """
+    H, W = f1.shape[1], f1.shape[2]
+    ny, D, _, nx = fwd.shape
+    # Column sums over the 4 rows of each forward / backward block, per dx;
+    # rows below the last grid row go to a spare block.
+    fsum = np.empty((ny + 1, D, W), np.float32)
+    bsum = np.empty((ny + 1, D, W), np.float32)
+    for kd in range(kd0, kd1):
+        dy = kd - R
+        for y in range(max(0, -dy), min(H, H - dy)):
+            gi = min(y // 4, ny)
+            qi = min((y + dy) // 4, ny)
+            _accumulate_products(
+                f1, f2, y, y + dy, R, fsum[gi], bsum[qi], y % 4 != 0, (y + dy) % 4 != 0
+            )
+        for ke in range(D):
+            dx = ke - R
+            # Forward: reference patch (gi, gj), window at (4 gi + dy, 4 gj + dx).
+            gj_lo = max(0, (3 - dx) // 4)
+            gj_hi = min(nx, (W - 4 - dx) // 4 + 1)
+            for gi in range(ny):
+                if 0 <= 4 * gi + dy and 4 * gi + dy + 4 <= H and gj_hi > gj_lo:
+                    _normalised_block_sums(
+                        fsum[gi, ke], 4 * gj_lo, n1[4 * gi], 4 * gj_lo, n2[4 * gi + dy],
+                        4 * gj_lo + dx, gj_hi - gj_lo, fwd[gi, kd, ke, gj_lo:],
+                    )  # fmt: skip
+            # Backward: current patch (qi, qj), window in the reference at
+            # (4 qi - dy, 4 qj - dx), stored at the displacement -d.
+            qj_lo = max(0, (dx + 3) // 4)
+            qj_hi = min(nx, (W - 4 + dx) // 4 + 1)
+            for qi in range(ny):
+                y0 = 4 * qi - dy
+                if 0 <= y0 and y0 + 4 <= H and qj_hi > qj_lo:
+                    _normalised_block_sums(
+                        bsum[qi, ke], 4 * qj_lo - dx, n1[y0], 4 * qj_lo - dx, n2[4 * qi],
+                        4 * qj_lo, qj_hi - qj_lo, bwd[qi, D - 1 - kd, D - 1 - ke, qj_lo:],
+                    )  # fmt: skip
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
 def _pool_subsample(child):
-    ny, nx, Df, _ = child.shape
+    """3x3 max-pooling of the displacements, subsampled by two.
+
+    Also returns where each maximum came from (``a * D + b`` for the child's
+    displacement (a, b), the first one in scan order on ties), which the
+    backtracking follows.
+    """
+    ny, Df, _, nx = child.shape
     Rf = Df // 2
     Rc = Rf // 2
     Dc = 2 * Rc + 1
-    out = np.zeros((ny, nx, Dc, Dc), np.float32)
-    for i in prange(ny):
-        for j in range(nx):
-            for kc in range(Dc):
-                k = Rf + 2 * (kc - Rc)
-                for lc in range(Dc):
-                    kx = Rf + 2 * (lc - Rc)
-                    m = np.float32(0.0)
-                    for a in range(max(k - 1, 0), min(k + 2, Df)):
-                        for b in range(max(kx - 1, 0), min(kx + 2, Df)):
-                            v = child[i, j, a, b]
-                            if v > m:
-                                m = v
-                    out[i, j, kc, lc] = m
-    return out
+    out = np.empty((ny, Dc, Dc, nx), np.float32)
+    arg = np.empty((ny, Dc, Dc, nx), np.int32)
+    for i in range(ny):
+        for kc in range(Dc):
+            k = Rf + 2 * (kc - Rc)
+            for lc in range(Dc):
+                kx = Rf + 2 * (lc - Rc)
+                o = out[i, kc, lc]
+                g = arg[i, kc, lc]
+                a0 = max(k - 1, 0)
+                b0 = max(kx - 1, 0)
+                o[:] = child[i, a0, b0]
+                g[:] = a0 * Df + b0
+                for a in range(a0, min(k + 2, Df)):
+                    for b in range(b0, min(kx + 2, Df)):
+                        r = child[i, a, b]
+                        code = np.int32(a * Df + b)
+                        for j in range(nx):
+                            better = r[j] > o[j]
+                            o[j] = r[j] if better else o[j]
+                            g[j] = code if better else g[j]
+    return out, arg
 
 
-@njit(cache=True)
-def _children(level, i, j, ny, nx):
-    """Child grid cells (at level - 1) of cell (i, j) at ``level``; -1 when outside."""
-    ci = np.full(4, -1, np.int64)
-    cj = np.full(4, -1, np.int64)
+@njit(cache=True, nogil=True)
+def _child_offsets(level):
+    """Row and column offsets of the four children (at level - 1) of a level's cell."""
     if level == 1:
         # Level-1 patches sit between four atomic patches.
-        di = (0, 1, 0, 1)
-        dj = (0, 0, 1, 1)
-    else:
-        o = 1 << (level - 2)
-        di = (-o, o, -o, o)
-        dj = (-o, -o, o, o)
+        return (0, 1, 0, 1), (0, 0, 1, 1)
+    o = 1 << (level - 2)
+    return (-o, o, -o, o), (-o, -o, o, o)
+
+
+@njit(cache=True, nogil=True)
+def _children(level, i, j, ny, nx):
+    """Child grid cells (at level - 1) of cell (i, j) at ``level``; -1 when outside."""
+    di, dj = _child_offsets(level)
+    ci = np.full(4, -1, np.int64)
+    cj = np.full(4, -1, np.int64)
     for n in range(4):
         a = i + di[n]
         b = j + dj[n]
@@ -222,33 +319,109 @@ def _children(level, i, j, ny, nx):
     return ci, cj
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _power(x, p, scratch):
+    """``x ** p`` in place for ``x >= 0``, in float32 to about 1e-6 relative.
+
+    log2 and exp2 are split into exponent bits and short series on the
+    mantissa, so that the loops vectorise (a libm ``powf`` per element
+    would dominate the aggregation).
+    """
+    bits = x.view(np.int32)
+    n = x.shape[0]
+    mantissa = np.int32(0x007FFFFF)
+    one_bits = np.int32(0x3F800000)
+    for j in range(n):
+        b = bits[j]
+        scratch[j] = (b >> np.int32(23)) - np.int32(127)
+        bits[j] = (b & mantissa) | one_bits
+    sqrt2 = np.float32(1.4142135)
+    half = np.float32(0.5)
+    one = np.float32(1.0)
+    inv_ln2 = np.float32(1.0 / math.log(2.0))
+    ln2 = np.float32(math.log(2.0))
+    pf = np.float32(p)
+    for j in range(n):
+        m = x[j]
+        big = m > sqrt2
+        m = m * half if big else m
+        e = np.float32(scratch[j]) + (one if big else np.float32(0.0))
+        # ln m = 2 atanh(s), |s| < 0.172
+        s = (m - one) / (m + one)
+        s2 = s * s
+        ln_m = (np.float32(2.0) * s) * (
+            one
+            + s2
+            * (
+                np.float32(1.0 / 3.0)
+                + s2 * (np.float32(0.2) + s2 * (np.float32(1.0 / 7.0) + s2 * np.float32(1.0 / 9.0)))
+            )
+        )
+        y = pf * (e + ln_m * inv_ln2)
+        k = np.floor(y + half)
+        z = (y - k) * ln2
+        # exp z, |z| < 0.35
+        x[j] = one + z * (
+            one
+            + z
+            * (
+                half
+                + z
+                * (
+                    np.float32(1.0 / 6.0)
+                    + z
+                    * (
+                        np.float32(1.0 / 24.0)
+                        + z
+                        * (
+                            np.float32(1.0 / 120.0)
+                            + z * (np.float32(1.0 / 720.0) + z * np.float32(1.0 / 5040.0))
+                        )
+                    )
+                )
+            )
+        )
+        scratch[j] = np.int32(max(k, -127.0))
+    for j in range(n):
+        k = scratch[j]
+        bits[j] = bits[j] + (k << np.int32(23)) if k > -127 else np.int32(0)
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
 def _aggregate(pooled, level, power, out_ny, out_nx):
-    ny, nx, D, _ = pooled.shape
-    out = np.zeros((out_ny, out_nx, D, D), np.float32)
-    for i in prange(out_ny):
+    """Mean of the (existing) children's pooled maps, power-rectified."""
+    ny, D, _, nx = pooled.shape
+    di, dj = _child_offsets(level)
+    out = np.zeros((out_ny, D, D, out_nx), np.float32)
+    for i in range(out_ny):
+        inv = np.zeros(out_nx, np.float32)
+        scratch = np.empty(out_nx, np.int32)
+        for n in range(4):
+            if 0 <= i + di[n] < ny:
+                for j in range(max(0, -dj[n]), min(out_nx, nx - dj[n])):
+                    inv[j] += 1.0
         for j in range(out_nx):
-            ci, cj = _children(level, i, j, ny, nx)
-            cnt = 0
-            for n in range(4):
-                if ci[n] >= 0:
-                    cnt += 1
-            if cnt == 0:
-                continue
-            inv = np.float32(1.0 / cnt)
-            for k in range(D):
-                for kx in range(D):
-                    s = np.float32(0.0)
-                    for n in range(4):
-                        if ci[n] >= 0:
-                            s += pooled[ci[n], cj[n], k, kx]
-                    out[i, j, k, kx] = (s * inv) ** power
+            inv[j] = 1.0 / inv[j] if inv[j] > 0 else 0.0
+        for k in range(D):
+            for kx in range(D):
+                o = out[i, k, kx]
+                for n in range(4):
+                    a = i + di[n]
+                    if not 0 <= a < ny:
+                        continue
+                    r = pooled[a, k, kx]
+                    s = dj[n]
+                    for j in range(max(0, -s), min(out_nx, nx - s)):
+                        o[j] += r[j + s]
+                for j in range(out_nx):
+                    o[j] *= inv[j]
+                _power(o, power, scratch)
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _top_candidates(top):
-    ny, nx, D, _ = top.shape
+    ny, D, _, nx = top.shape
     n = ny * nx
     ci = np.empty(n, np.int64)
     cj = np.empty(n, np.int64)
@@ -262,8 +435,8 @@ def _top_candidates(top):
             bl = 0
             for k in range(D):
                 for kx in range(D):
-                    if top[i, j, k, kx] > best:
-                        best = top[i, j, k, kx]
+                    if top[i, k, kx, j] > best:
+                        best = top[i, k, kx, j]
                         bk = k
                         bl = kx
             m = i * nx + j
@@ -275,12 +448,13 @@ def _top_candidates(top):
     return ci, cj, ck, cl, cs
 
 
-@njit(cache=True)
-def _descend(child, level, ci, cj, ck, cl, cs):
-    """Follow each candidate at ``level`` into its four children at ``level - 1``."""
-    ny, nx, Df, _ = child.shape
-    Rf = Df // 2
-    Rc = Rf // 2
+@njit(cache=True, nogil=True)
+def _descend(child, arg, level, ci, cj, ck, cl, cs):
+    """Follow each candidate at ``level`` into its four children at ``level - 1``.
+
+    ``arg`` is where the pooling of ``child`` found each maximum.
+    """
+    ny, Df, _, nx = child.shape
     n = ci.shape[0]
     oi = np.full(4 * n, -1, np.int64)
     oj = np.full(4 * n, -1, np.int64)
@@ -291,33 +465,24 @@ def _descend(child, level, ci, cj, ck, cl, cs):
         if ci[m] < 0:
             continue
         chi, chj = _children(level, ci[m], cj[m], ny, nx)
-        k0 = Rf + 2 * (ck[m] - Rc)
-        l0 = Rf + 2 * (cl[m] - Rc)
         for c in range(4):
             if chi[c] < 0:
                 continue
-            best = np.float32(-1.0)
-            bk = k0
-            bl = l0
-            for a in range(max(k0 - 1, 0), min(k0 + 2, Df)):
-                for b in range(max(l0 - 1, 0), min(l0 + 2, Df)):
-                    v = child[chi[c], chj[c], a, b]
-                    if v > best:
-                        best = v
-                        bk = a
-                        bl = b
+            code = arg[chi[c], ck[m], cl[m], chj[c]]
+            bk = code // Df
+            bl = code % Df
             q = 4 * m + c
             oi[q] = chi[c]
             oj[q] = chj[c]
             ok[q] = bk
             ol[q] = bl
-            osc[q] = cs[m] + best
+            osc[q] = cs[m] + child[chi[c], bk, bl, chj[c]]
     return oi, oj, ok, ol, osc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _best_per_cell(resp0, ci, cj, ck, cl, cs):
-    ny, nx, D, _ = resp0.shape
+    ny, D, _, nx = resp0.shape
     R = D // 2
     best = np.full((ny, nx), -1.0, np.float32)
     dy = np.zeros((ny, nx), np.float32)
@@ -335,22 +500,22 @@ def _best_per_cell(resp0, ci, cj, ck, cl, cs):
         sy = 0.0
         sx = 0.0
         if 0 < k < D - 1:
-            a = resp0[i, j, k - 1, kx]
-            b = resp0[i, j, k, kx]
-            c = resp0[i, j, k + 1, kx]
+            a = resp0[i, k - 1, kx, j]
+            b = resp0[i, k, kx, j]
+            c = resp0[i, k + 1, kx, j]
             den = a - 2.0 * b + c
             if den < 0.0:
                 sy = min(max(0.5 * (a - c) / den, -0.5), 0.5)
         if 0 < kx < D - 1:
-            a = resp0[i, j, k, kx - 1]
-            b = resp0[i, j, k, kx]
-            c = resp0[i, j, k, kx + 1]
+            a = resp0[i, k, kx - 1, j]
+            b = resp0[i, k, kx, j]
+            c = resp0[i, k, kx + 1, j]
             den = a - 2.0 * b + c
             if den < 0.0:
                 sx = min(max(0.5 * (a - c) / den, -0.5), 0.5)
         dy[i, j] = k - R + sy
         dx[i, j] = kx - R + sx
-        corr[i, j] = resp0[i, j, k, kx]
+        corr[i, j] = resp0[i, k, kx, j]
     return dx, dy, corr, best
 
 
@@ -363,30 +528,53 @@ def _n_levels(max_patch: int) -> int:
     return levels
 
 
-def _match_one_way(f1, f2, radius, params):
-    """Grid matches from descriptors f1 to f2 (downscaled pixels)."""
-    H, W, _ = f1.shape
-    ny, nx = H // ATOMIC, W // ATOMIC
-    n1 = _patch_norms(f1)
-    n2 = _patch_norms(f2)
-    resp = [_atomic_responses(f1, f2, n1, n2, ny, nx, int(radius))]
+def _match_from_responses(atomic, params):
+    """Grid matches (downscaled pixels) from the atomic response maps of one direction."""
+    ny, _, _, nx = atomic.shape
+    resp = [atomic]
+    args = []
     levels = _n_levels(params.max_patch)
     shapes = [(ny, nx)]
     for level in range(1, levels + 1):
         cny, cnx = shapes[-1]
         out_ny, out_nx = (cny - 1, cnx - 1) if level == 1 else (cny, cnx)
-        if out_ny < 1 or out_nx < 1 or resp[-1].shape[2] < 5:
+        if out_ny < 1 or out_nx < 1 or resp[-1].shape[1] < 5:
             break
-        pooled = _pool_subsample(resp[-1])
+        pooled, arg = _pool_subsample(resp[-1])
         resp.append(_aggregate(pooled, level, float(params.aggregation_power), out_ny, out_nx))
+        args.append(arg)
         shapes.append((out_ny, out_nx))
         del pooled
     top = len(resp) - 1
     ci, cj, ck, cl, cs = _top_candidates(resp[top])
     for level in range(top, 0, -1):
-        ci, cj, ck, cl, cs = _descend(resp[level - 1], level, ci, cj, ck, cl, cs)
+        ci, cj, ck, cl, cs = _descend(resp[level - 1], args[level - 1], level, ci, cj, ck, cl, cs)
     dx, dy, corr, _ = _best_per_cell(resp[0], ci, cj, ck, cl, cs)
     return dx, dy, corr
+
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _run_both(first, second):
+    """Results of the callables ``first`` and ``second`` (``None`` skips one), run side by side.
+
+    The kernels release the GIL, so two cores work at once. One pool of two
+    threads serves every caller: concurrent callers (``refflow track
+    --jobs``) queue up instead of multiplying threads, and each caller waits
+    only for its own two tasks, so a busy machine costs at most one wait per
+    call instead of one per parallel loop.
+    """
+    global _POOL
+    if second is None or (os.cpu_count() or 1) < 2:
+        return first(), (second() if second is not None else None)
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="deepmatching")
+    future = _POOL.submit(second)
+    result = first()
+    return result, future.result()
 
 
 def _centres(n: int) -> np.ndarray:
@@ -422,18 +610,32 @@ def deep_matching(
         raise ValueError(
             f"image {reference.shape[1]}x{reference.shape[0]} is too small to match at downscale {ds}"
         )
-    f1 = np.ascontiguousarray(pixel_descriptors(im1, params))
-    f2 = np.ascontiguousarray(pixel_descriptors(im2, params))
+    f1 = _descriptor_planes(im1, params)
+    f2 = _descriptor_planes(im2, params)
     H, W = im1.shape
     radius = params.ngh_rad / ds if params.ngh_rad > 0 else max(H, W)
     radius = int(math.ceil(min(radius, max(H, W))))
-    dx, dy, corr = _match_one_way(f1, f2, radius, params)
-    ny, nx = dx.shape
+    ny, nx = H // ATOMIC, W // ATOMIC
+    D = 2 * radius + 1
+    n1, n2 = _patch_norms(f1), _patch_norms(f2)
+    forward = np.zeros((ny, D, D, nx), np.float32)
+    backward = np.zeros((ny, D, D, nx), np.float32)
+    # Two tasks of equal work (the displacement rows alternate between them)
+    # would need strided outputs; contiguous halves are close enough.
+    halves = [(0, (D + 1) // 2), ((D + 1) // 2, D)]
+    _run_both(
+        *(partial(_atomic_both, f1, f2, n1, n2, radius, a, b, forward, backward) for a, b in halves)
+    )
+    (dx, dy, corr), backward_matches = _run_both(
+        partial(_match_from_responses, forward, params),
+        partial(_match_from_responses, backward, params) if params.reciprocal else None,
+    )
+    del forward, backward
     valid = corr > params.min_score
     cy = _centres(ny)[:, None] * np.ones((1, nx), np.float32)
     cx = np.ones((ny, 1), np.float32) * _centres(nx)[None, :]
     if params.reciprocal:
-        bdx, bdy, bcorr = _match_one_way(f2, f1, radius, params)
+        bdx, bdy, bcorr = backward_matches
         ty = cy + dy
         tx = cx + dx
         bi = np.clip(np.rint((ty - (ATOMIC - 1) / 2.0) / ATOMIC).astype(np.int64), 0, ny - 1)

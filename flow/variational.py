@@ -11,10 +11,18 @@ with ``psi(s2) = sqrt(s2 + eps^2)`` (Charbonnier), the linearised data
 constraints normalised by ``1 / (|grad|^2 + zeta^2)`` (Zimmer et al. 2011), a
 local smoothness weight ``alpha(x) = alpha * exp(-kappa * |grad I1(x)|)``
 (DeepFlow's edge-aware weight) and ``w'`` the matches with per-match weight
-``phi``. It is minimised coarse to fine (pyramid factor ``eta``), warping once
-per level (bicubic), with ``n_outer`` fixed-point iterations that freeze the robust
-weights and ``n_sor`` successive over-relaxation sweeps on the 2x2 per-pixel
-linear systems.
+``phi``. It is minimised coarse to fine (pyramid factor ``eta``), warping the
+current frame once per level (bicubic, Keys a = -0.5) and differentiating the
+warped frame, with ``n_outer`` fixed-point iterations that freeze the robust
+weights and ``n_sor`` red-black successive over-relaxation sweeps on the 2x2
+per-pixel linear systems.
+
+The solver works on the two colours of the red-black ordering packed into
+separate unit-stride rows (see the layout notes below), pipelines the sweeps
+along the rows so that the rows in flight stay in cache, and builds each
+fixed-point iteration's system in the same pass as its first sweeps. It runs
+on one thread: on a busy machine, threads that must meet at every sweep lose
+more waiting for each other than they gain.
 
 References
 ----------
@@ -34,9 +42,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numba import njit
-
-# Brox et al.'s five-point derivative stencil.
-_DERIV = np.array([[1.0, -8.0, 0.0, 8.0, -1.0]], dtype=np.float32) / 12.0
 
 
 @dataclass(frozen=True)
@@ -87,214 +92,668 @@ class VariationalParams:
     edge_sigma: float = 2.0
 
 
-@njit(cache=True, fastmath=True)
-def _psi_prime(s2, eps2):
-    return 0.5 / math.sqrt(s2 + eps2)
+# Packed red-black layout
+# -----------------------
+# Pixel (y, x) has colour c = (x + y) & 1 and lives at [y + 1, ..., c, x // 2 + 1]
+# of arrays shaped (H + 2, ..., 2, K + 2), K >= (W + 1) // 2: rows first, so that
+# what a sweep needs of one row is close together. Along row y the colour-c pixels sit at
+# x = 2k + p with p = (y + c) & 1, so their west and east neighbours are the
+# other colour's entries k + p - 1 and k + p of the same row, and their north
+# and south neighbours its entries k of rows y -+ 1. A half-sweep is then a
+# unit-stride stencil that LLVM vectorises (the x += 2 loop over a full grid
+# is not). The ring around the grid and the spare slots at the end of the
+# rows (K is rounded up to whole vectors) stand for pixels outside the image:
+# their links are zero and their increments stay zero.
+
+_N_DATA = 11  # ix, iy, it, nc, ixx, ixy, iyy, ixt, iyt, ngx, ngy
+_N_COEF = 5  # a12, b1, b2, 1 / d11, 1 / d22
+_N_LEVEL = 6  # u, v, u - mu, v - mv, beta * match weight / 2, local alpha
+# Cache share for the rows in flight of the temporally blocked SOR (see _sor).
+_SOR_CACHE_BYTES = 1 << 20
+# Keys' cubic convolution parameter of the warps. -0.5 reproduces linear and
+# quadratic intensity profiles exactly; the -0.75 of OpenCV's INTER_CUBIC
+# shifts them by up to 0.04 px (its weights' first moment at offset 0.3 is
+# 0.342), a bias that shows up as a sub-pixel flow error on low-texture scenes.
+_CUBIC_A = -0.5
 
 
-@njit(cache=True, fastmath=True)
-def _sor(dup, dvp, wE, wW, wS, wN, inv11, inv22, A12, b1, b2, n_sor, omega):
-    """Red-black SOR on padded increments.
+class Workspace:
+    """Scratch arrays reused across pyramid levels and calls.
 
-    Serial on purpose: thread start-up per half-sweep costs more than the
-    sweep itself on the many small pyramid levels.
+    A level needs tens of MB of scratch; reusing it keeps the pages mapped
+    instead of faulting fresh ones in for every level of every frame. One
+    workspace must not be shared by calls running at the same time.
     """
-    H, W = wE.shape
+
+    def __init__(self) -> None:
+        self._buffers: dict[str, np.ndarray] = {}
+
+    def array(self, name: str, shape: tuple[int, ...], zero: bool = False) -> np.ndarray:
+        """A float32 array of ``shape`` backed by the buffer ``name``."""
+        size = math.prod(shape)
+        buffer = self._buffers.get(name)
+        if buffer is None or buffer.size < size:
+            buffer = self._buffers[name] = np.empty(size, np.float32)
+        view = buffer[:size].reshape(shape)
+        if zero:
+            view.fill(0.0)
+        return view
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _diff_x_at(s, x, W):
+    # Five-point derivative at column x of row s, replicated border.
+    c1 = np.float32(8.0 / 12.0)
+    c2 = np.float32(1.0 / 12.0)
+    return c1 * (s[min(x + 1, W - 1)] - s[max(x - 1, 0)]) - c2 * (
+        s[min(x + 2, W - 1)] - s[max(x - 2, 0)]
+    )
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _diff_x(src, dst):
+    """Brox et al.'s five-point derivative (1, -8, 0, 8, -1) / 12 along x."""
+    H, W = src.shape
+    c1 = np.float32(8.0 / 12.0)
+    c2 = np.float32(1.0 / 12.0)
+    for y in range(H):
+        s = src[y]
+        d = dst[y]
+        for x in range(2, W - 2):
+            d[x] = c1 * (s[x + 1] - s[x - 1]) - c2 * (s[x + 2] - s[x - 2])
+        for x in range(min(2, W)):
+            d[x] = _diff_x_at(s, x, W)
+        for x in range(max(W - 2, 2), W):
+            d[x] = _diff_x_at(s, x, W)
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _diff_y(src, dst):
+    """Five-point derivative along y, replicated border."""
+    H, W = src.shape
+    c1 = np.float32(8.0 / 12.0)
+    c2 = np.float32(1.0 / 12.0)
+    for y in range(H):
+        m2 = src[max(y - 2, 0)]
+        m1 = src[max(y - 1, 0)]
+        p1 = src[min(y + 1, H - 1)]
+        p2 = src[min(y + 2, H - 1)]
+        d = dst[y]
+        for x in range(W):
+            d[x] = c1 * (p1[x] - m1[x]) - c2 * (p2[x] - m2[x])
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _derivatives(image, out):
+    """I, Ix, Iy, Ixx, Ixy, Iyy of ``image`` into the planes ``out[0:6]``."""
+    out[0] = image
+    _diff_x(image, out[1])
+    _diff_y(image, out[2])
+    _diff_x(out[1], out[3])
+    _diff_y(out[1], out[4])
+    _diff_y(out[2], out[5])
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _cubic(t):
+    # Keys' cubic convolution weights of the taps at -1, 0, 1, 2 for an offset t in [0, 1).
+    a = np.float32(_CUBIC_A)
     one = np.float32(1.0)
-    for _it in range(n_sor):
-        for colour in range(2):
-            for y in range(H):
-                yy = y + 1
-                for x in range((y + colour) & 1, W, 2):
-                    xx = x + 1
-                    e = wE[y, x]
-                    w = wW[y, x]
-                    s = wS[y, x]
-                    n = wN[y, x]
-                    su = (
-                        e * dup[yy, xx + 1]
-                        + w * dup[yy, xx - 1]
-                        + s * dup[yy + 1, xx]
-                        + n * dup[yy - 1, xx]
-                    )
-                    sv = (
-                        e * dvp[yy, xx + 1]
-                        + w * dvp[yy, xx - 1]
-                        + s * dvp[yy + 1, xx]
-                        + n * dvp[yy - 1, xx]
-                    )
-                    a12 = A12[y, x]
-                    old_u = dup[yy, xx]
-                    nu = (b1[y, x] + su - a12 * dvp[yy, xx]) * inv11[y, x]
-                    new_u = (one - omega) * old_u + omega * nu
-                    dup[yy, xx] = new_u
-                    nv = (b2[y, x] + sv - a12 * new_u) * inv22[y, x]
-                    dvp[yy, xx] = (one - omega) * dvp[yy, xx] + omega * nv
-    return dup, dvp
+    t1 = t + one
+    s = one - t
+    s1 = s + one
+    w0 = ((a * t1 - np.float32(5.0) * a) * t1 + np.float32(8.0) * a) * t1 - np.float32(4.0) * a
+    w1 = ((a + np.float32(2.0)) * t - (a + np.float32(3.0))) * t * t + one
+    w2 = ((a + np.float32(2.0)) * s - (a + np.float32(3.0))) * s * s + one
+    w3 = ((a * s1 - np.float32(5.0) * a) * s1 + np.float32(8.0) * a) * s1 - np.float32(4.0) * a
+    return w0, w1, w2, w3
 
 
-@njit(cache=True, fastmath=True)
-def _solve_level(
-    Ix,
-    Iy,
-    It,
-    Ixx,
-    Ixy,
-    Iyy,
-    Ixt,
-    Iyt,
-    valid,
-    alpha_map,
-    u,
-    v,
-    mu,
-    mv,
-    mw,
-    delta,
-    gamma,
-    beta,
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _warp(image, flow, out, inside):
+    """Bicubic ``image(x + flow(x))`` with a replicated border into ``out``.
+
+    ``inside`` is 1 where the target lies in the frame, else 0 (the sample
+    is then taken at the nearest point of the frame).
+    """
+    H, W = image.shape
+    xmax = np.float32(W - 1)
+    ymax = np.float32(H - 1)
+    zero = np.float32(0.0)
+    for y in range(H):
+        for x in range(W):
+            px = np.float32(x) + flow[y, x, 0]
+            py = np.float32(y) + flow[y, x, 1]
+            ok = px >= zero and px <= xmax and py >= zero and py <= ymax
+            inside[y, x] = 1.0 if ok else 0.0
+            if not ok:
+                # Written so that NaN lands on the frame as well.
+                px = px if px <= xmax else xmax
+                px = px if px >= zero else zero
+                py = py if py <= ymax else ymax
+                py = py if py >= zero else zero
+            # np.floor keeps float32 (math.floor returns an int, promoting the weights to float64).
+            fx = np.floor(px)
+            fy = np.floor(py)
+            x0 = int(fx)
+            y0 = int(fy)
+            wx0, wx1, wx2, wx3 = _cubic(px - fx)
+            wy0, wy1, wy2, wy3 = _cubic(py - fy)
+            xa = max(x0 - 1, 0)
+            xc = min(x0 + 1, W - 1)
+            xd = min(x0 + 2, W - 1)
+            ra = image[max(y0 - 1, 0)]
+            rb = image[y0]
+            rc = image[min(y0 + 1, H - 1)]
+            rd = image[min(y0 + 2, H - 1)]
+            out[y, x] = (
+                wy0 * (wx0 * ra[xa] + wx1 * ra[x0] + wx2 * ra[xc] + wx3 * ra[xd])
+                + wy1 * (wx0 * rb[xa] + wx1 * rb[x0] + wx2 * rb[xc] + wx3 * rb[xd])
+                + wy2 * (wx0 * rc[xa] + wx1 * rc[x0] + wx2 * rc[xc] + wx3 * rc[xd])
+                + wy3 * (wx0 * rd[xa] + wx1 * rd[x0] + wx2 * rd[xc] + wx3 * rd[xd])
+            )
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _zero_ring(packed):
+    # Zero the first and last rows and slots of a packed array.
+    last = packed.shape[-1] - 1
+    packed[0] = 0.0
+    packed[packed.shape[0] - 1] = 0.0
+    for y in range(1, packed.shape[0] - 1):
+        row = packed[y]
+        for q in range(row.shape[0]):
+            for c in range(2):
+                row[q, c, 0] = 0.0
+                row[q, c, last] = 0.0
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _pack_data(s1, s2, inside, zeta2, out):
+    """Linearised data terms (see ``_N_DATA``) from the derivative planes, packed.
+
+    ``s1`` and ``s2`` hold I, Ix, Iy, Ixx, Ixy, Iyy of the reference and of
+    the warped current frame. Pixels whose target leaves the frame get zero
+    normalisations, which switches their data term off.
+    """
+    W = s1.shape[2]
+    half = np.float32(0.5)
+    z2 = np.float32(zeta2)
+    _zero_ring(out)
+    nk_all = out.shape[3] - 2
+    for y in range(s1.shape[1]):
+        g = out[y + 1]
+        m = inside[y]
+        for c in range(2):
+            p = (y + c) & 1
+            nk = (W - p + 1) // 2
+            # Two loops with few output streams each: LLVM vectorises them.
+            i1, i1x, i1y = s1[0, y, p:], s1[1, y, p:], s1[2, y, p:]
+            i2, i2x, i2y = s2[0, y, p:], s2[1, y, p:], s2[2, y, p:]
+            mc = m[p:]
+            g_ix, g_iy, g_it, g_nc, g_ixt, g_iyt = (
+                g[0, c],
+                g[1, c],
+                g[2, c],
+                g[3, c],
+                g[7, c],
+                g[8, c],
+            )
+            for k in range(nk):
+                x = 2 * k
+                ix = half * (i1x[x] + i2x[x])
+                iy = half * (i1y[x] + i2y[x])
+                g_ix[k + 1] = ix
+                g_iy[k + 1] = iy
+                g_it[k + 1] = i2[x] - i1[x]
+                g_nc[k + 1] = mc[x] / (ix * ix + iy * iy + z2)
+                g_ixt[k + 1] = i2x[x] - i1x[x]
+                g_iyt[k + 1] = i2y[x] - i1y[x]
+            j1xx, j1xy, j1yy = s1[3, y, p:], s1[4, y, p:], s1[5, y, p:]
+            j2xx, j2xy, j2yy = s2[3, y, p:], s2[4, y, p:], s2[5, y, p:]
+            g_ixx, g_ixy, g_iyy, g_ngx, g_ngy = g[4, c], g[5, c], g[6, c], g[9, c], g[10, c]
+            for k in range(nk):
+                x = 2 * k
+                ixx = half * (j1xx[x] + j2xx[x])
+                ixy = half * (j1xy[x] + j2xy[x])
+                iyy = half * (j1yy[x] + j2yy[x])
+                g_ixx[k + 1] = ixx
+                g_ixy[k + 1] = ixy
+                g_iyy[k + 1] = iyy
+                g_ngx[k + 1] = mc[x] / (ixx * ixx + ixy * ixy + z2)
+                g_ngy[k + 1] = mc[x] / (ixy * ixy + iyy * iyy + z2)
+            for k in range(nk + 1, nk_all + 1):
+                g[:, c, k] = 0.0
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _pack_level(flow, match, match_scale, half_weight, alpha, out):
+    """Per-level constants (see ``_N_LEVEL``), packed.
+
+    ``match`` times ``match_scale`` (x, y) are the matches and
+    ``half_weight`` beta / 2 times their weights (zeros switch the term
+    off); ``alpha`` is the local smoothness weight.
+    """
+    H, W = alpha.shape
+    sx = np.float32(match_scale[0])
+    sy = np.float32(match_scale[1])
+    _zero_ring(out)
+    nk_all = out.shape[3] - 2
+    for y in range(H):
+        row = out[y + 1]
+        for c in range(2):
+            p = (y + c) & 1
+            nk = (W - p + 1) // 2
+            f = flow[y, p:]
+            mt = match[y, p:]
+            hw = half_weight[y, p:]
+            al = alpha[y, p:]
+            l_u, l_v, l_fu, l_fv, l_m, l_a = (
+                row[0, c],
+                row[1, c],
+                row[2, c],
+                row[3, c],
+                row[4, c],
+                row[5, c],
+            )
+            for k in range(nk):
+                x = 2 * k
+                l_u[k + 1] = f[x, 0]
+                l_v[k + 1] = f[x, 1]
+                l_fu[k + 1] = f[x, 0] - sx * mt[x, 0]
+                l_fv[k + 1] = f[x, 1] - sy * mt[x, 1]
+                l_m[k + 1] = hw[x]
+                l_a[k + 1] = al[x]
+            for k in range(nk + 1, nk_all + 1):
+                row[:, c, k] = 0.0
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _gradient_magnitude(image, out, scratch):
+    """``|grad image|`` (five-point derivatives) into ``out``."""
+    _diff_x(image, out)
+    _diff_y(image, scratch)
+    H, W = image.shape
+    for y in range(H):
+        o = out[y]
+        g = scratch[y]
+        for x in range(W):
+            o[x] = math.sqrt(o[x] * o[x] + g[x] * g[x])
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _prepare_level(
+    image1,
+    image2,
+    flow,
+    flow_scale,
+    match,
+    match_scale,
+    half_weight,
+    alpha,
     zeta2,
-    eps2,
-    n_outer,
-    n_sor,
-    omega,
+    scratch,
+    data,
+    level,
 ):
-    H, W = u.shape
-    du = np.zeros((H, W), np.float32)
-    dv = np.zeros((H, W), np.float32)
-    a_s = np.empty((H, W), np.float32)
-    wx = np.zeros((H, W), np.float32)  # link (y, x) - (y, x + 1)
-    wy = np.zeros((H, W), np.float32)  # link (y, x) - (y + 1, x)
-    A11 = np.empty((H, W), np.float32)
-    A12 = np.empty((H, W), np.float32)
-    A22 = np.empty((H, W), np.float32)
-    b1 = np.empty((H, W), np.float32)
-    b2 = np.empty((H, W), np.float32)
-    wE = np.empty((H, W), np.float32)
-    wW = np.empty((H, W), np.float32)
-    wS = np.empty((H, W), np.float32)
-    wN = np.empty((H, W), np.float32)
-    inv11 = np.empty((H, W), np.float32)
-    inv22 = np.empty((H, W), np.float32)
-    # Zero-padded copies of the increments remove all border tests from the sweeps.
-    dup = np.zeros((H + 2, W + 2), np.float32)
-    dvp = np.zeros((H + 2, W + 2), np.float32)
-    for _outer in range(n_outer):
-        # Robust smoothness weights from the current total flow.
-        for y in range(H):
-            ym = y - 1 if y > 0 else 0
-            yp = y + 1 if y < H - 1 else H - 1
-            for x in range(W):
-                xm = x - 1 if x > 0 else 0
-                xp = x + 1 if x < W - 1 else W - 1
-                ux = 0.5 * (u[y, xp] + du[y, xp] - u[y, xm] - du[y, xm])
-                uy = 0.5 * (u[yp, x] + du[yp, x] - u[ym, x] - du[ym, x])
-                vx = 0.5 * (v[y, xp] + dv[y, xp] - v[y, xm] - dv[y, xm])
-                vy = 0.5 * (v[yp, x] + dv[yp, x] - v[ym, x] - dv[ym, x])
-                a_s[y, x] = alpha_map[y, x] * _psi_prime(
-                    ux * ux + uy * uy + vx * vx + vy * vy, eps2
+    """Pack one level's data terms into ``data`` and its constants into ``level``.
+
+    ``flow`` is first multiplied in place by ``flow_scale`` (x, y), which
+    turns a flow resampled from another level into this level's pixels.
+    ``scratch`` is (13, H, W): derivative planes of both frames and the
+    warp mask.
+    """
+    sx = np.float32(flow_scale[0])
+    sy = np.float32(flow_scale[1])
+    for y in range(flow.shape[0]):
+        f = flow[y]
+        for x in range(flow.shape[1]):
+            f[x, 0] *= sx
+            f[x, 1] *= sy
+    s1 = scratch[0:6]
+    s2 = scratch[6:12]
+    _derivatives(image1, s1)
+    _warp(image2, flow, s2[0], scratch[12])
+    _derivatives(s2[0], s2)
+    _pack_data(s1, s2, scratch[12], zeta2, data)
+    _pack_level(flow, match, match_scale, half_weight, alpha, level)
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _add_increment(flow, du, dv):
+    """``flow`` (H, W, 2) plus the packed increments."""
+    H, W, _ = flow.shape
+    out = np.empty((H, W, 2), np.float32)
+    for y in range(H):
+        for x in range(W):
+            c = (x + y) & 1
+            k = (x >> 1) + 1
+            out[y, x, 0] = flow[y, x, 0] + du[y + 1, c, k]
+            out[y, x, 1] = flow[y, x, 1] + dv[y + 1, c, k]
+    return out
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _sor_row(du, dv, E, S, coef, c, y, omega):
+    """Over-relax the colour-``c`` pixels of row ``y`` (Gauss-Seidel on u, then v)."""
+    o = 1 - c
+    yy = y + 1
+    p = (y + c) & 1
+    nk = du.shape[2] - 2
+    du_c = du[yy, c]
+    dv_c = dv[yy, c]
+    du_o = du[yy, o]
+    dv_o = dv[yy, o]
+    du_n = du[yy - 1, o]
+    dv_n = dv[yy - 1, o]
+    du_s = du[yy + 1, o]
+    dv_s = dv[yy + 1, o]
+    e_c = E[yy, c]
+    e_o = E[yy, o]
+    s_c = S[yy, c]
+    s_n = S[yy - 1, o]
+    a12 = coef[yy, 0, c]
+    b1 = coef[yy, 1, c]
+    b2 = coef[yy, 2, c]
+    i11 = coef[yy, 3, c]
+    i22 = coef[yy, 4, c]
+    for k in range(1, nk + 1):
+        kw = k + p - 1
+        ke = k + p
+        we = e_c[k]
+        ww = e_o[kw]
+        ws = s_c[k]
+        wn = s_n[k]
+        su = we * du_o[ke] + ww * du_o[kw] + ws * du_s[k] + wn * du_n[k]
+        sv = we * dv_o[ke] + ww * dv_o[kw] + ws * dv_s[k] + wn * dv_n[k]
+        old_u = du_c[k]
+        new_u = old_u + omega * ((b1[k] + su - a12[k] * dv_c[k]) * i11[k] - old_u)
+        du_c[k] = new_u
+        old_v = dv_c[k]
+        dv_c[k] = old_v + omega * ((b2[k] + sv - a12[k] * new_u) * i22[k] - old_v)
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _sor_step(du, dv, E, S, coef, t, n, omega):
+    """Step ``t`` of ``n`` pipelined red-black SOR sweeps (see :func:`_sor`)."""
+    H = du.shape[0] - 2
+    for j in range(n):
+        y = t - 2 * j
+        if 0 <= y < H:
+            _sor_row(du, dv, E, S, coef, 0, y, omega)
+        if 1 <= y <= H:
+            _sor_row(du, dv, E, S, coef, 1, y - 1, omega)
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _sor(du, dv, E, S, coef, n_sor, omega, chunk):
+    """``n_sor`` red-black SOR sweeps, ``chunk`` of them per pass over memory.
+
+    Sweeps are pipelined along the rows (temporal blocking): in step t,
+    sweep j over-relaxes the red pixels of row t - 2j and then the black
+    pixels of row t - 2j - 1. Every pixel is then updated from exactly the
+    neighbour values of plain sweep-after-sweep red-black SOR, so the result
+    is the same (to rounding: the compiler may fuse multiply-adds
+    differently), while the ~2 * chunk rows in flight stay in cache instead
+    of the whole level streaming through memory every half-sweep.
+    """
+    H = du.shape[0] - 2
+    om = np.float32(omega)
+    done = 0
+    while done < n_sor:
+        n = min(chunk, n_sor - done)
+        for t in range(H + 1 + 2 * (n - 1)):
+            _sor_step(du, dv, E, S, coef, t, n, om)
+        done += n
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _total_rows(level, du, dv, T, H, W, r0, r1):
+    """Total flow u + du, v + dv of rows [r0, r1) into ``T``, ring replicated.
+
+    The ring slots a border pixel's stencil reaches into hold that pixel's
+    own value, so central differences see a replicated border.
+    """
+    nk = T.shape[3] - 2
+    for y in range(r0, r1):
+        yy = y + 1
+        for c in range(2):
+            t_u = T[yy, 0, c]
+            t_v = T[yy, 1, c]
+            l_u = level[yy, 0, c]
+            l_v = level[yy, 1, c]
+            d_u = du[yy, c]
+            d_v = dv[yy, c]
+            for k in range(1, nk + 1):
+                t_u[k] = l_u[k] + d_u[k]
+                t_v[k] = l_v[k] + d_v[k]
+        c0 = y & 1  # colour of x = 0
+        c1 = (W - 1 + y) & 1  # colour of x = W - 1
+        k1 = (W - 1) // 2 + 1
+        p1 = (W - 1) & 1
+        for q in range(2):
+            T[yy, q, 1 - c0, 0] = T[yy, q, c0, 1]
+            T[yy, q, 1 - c1, k1 + p1] = T[yy, q, c1, k1]
+    if r0 == 0:
+        for q in range(2):
+            for c in range(2):
+                T[0, q, 1 - c] = T[1, q, c]
+    if r1 == H:
+        for q in range(2):
+            for c in range(2):
+                T[H + 1, q, 1 - c] = T[H, q, c]
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _smoothness_rows(T, level, a, eps2, W, r0, r1):
+    """Robust smoothness weights ``alpha(x) psi'(|grad w|^2)`` of rows [r0, r1)."""
+    half = np.float32(0.5)
+    quarter = np.float32(0.25)
+    e2 = np.float32(eps2)
+    for y in range(r0, r1):
+        yy = y + 1
+        for c in range(2):
+            o = 1 - c
+            p = (y + c) & 1
+            u_o = T[yy, 0, o]
+            u_n = T[yy - 1, 0, o]
+            u_s = T[yy + 1, 0, o]
+            v_o = T[yy, 1, o]
+            v_n = T[yy - 1, 1, o]
+            v_s = T[yy + 1, 1, o]
+            alpha = level[yy, 5, c]
+            out = a[yy, c]
+            for k in range(1, (W - p + 1) // 2 + 1):
+                ux = u_o[k + p] - u_o[k + p - 1]
+                uy = u_s[k] - u_n[k]
+                vx = v_o[k + p] - v_o[k + p - 1]
+                vy = v_s[k] - v_n[k]
+                g2 = quarter * (ux * ux + uy * uy + vx * vx + vy * vy)
+                out[k] = alpha[k] * half / math.sqrt(g2 + e2)
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _link_rows(a, E, S, H, W, r0, r1):
+    """Links to the east and south neighbours (mean of both weights; 0 off the image)."""
+    half = np.float32(0.5)
+    for y in range(r0, r1):
+        yy = y + 1
+        for c in range(2):
+            o = 1 - c
+            p = (y + c) & 1
+            nk = (W - p + 1) // 2
+            a_c = a[yy, c]
+            a_o = a[yy, o]
+            a_s = a[yy + 1, o]
+            e = E[yy, c]
+            s = S[yy, c]
+            for k in range(1, nk + 1):
+                e[k] = half * (a_c[k] + a_o[k + p])
+            if 2 * (nk - 1) + p == W - 1:
+                e[nk] = 0.0
+            if y < H - 1:
+                for k in range(1, nk + 1):
+                    s[k] = half * (a_c[k] + a_s[k])
+            else:
+                s[:] = 0.0
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _coef_rows(level, data, du, dv, E, S, coef, delta, gamma, eps2, r0, r1):
+    """Frozen linear system of rows [r0, r1): data, matching and smoothness terms.
+
+    Slots outside the image come out with zero inverse diagonals (their
+    data, matching weight and links are zero), which keeps them at zero.
+    """
+    half = np.float32(0.5)
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    dl = np.float32(delta) * half
+    gm = np.float32(gamma) * half
+    e2 = np.float32(eps2)
+    nk = coef.shape[3] - 2
+    for y in range(r0, r1):
+        yy = y + 1
+        g = data[yy]
+        out = coef[yy]
+        for c in range(2):
+            o = 1 - c
+            p = (y + c) & 1
+            e_c = E[yy, c]
+            e_o = E[yy, o]
+            s_c = S[yy, c]
+            s_n = S[yy - 1, o]
+            u_c = level[yy, 0, c]
+            u_o = level[yy, 0, o]
+            u_n = level[yy - 1, 0, o]
+            u_s = level[yy + 1, 0, o]
+            v_c = level[yy, 1, c]
+            v_o = level[yy, 1, o]
+            v_n = level[yy - 1, 1, o]
+            v_s = level[yy + 1, 1, o]
+            f_u = level[yy, 2, c]
+            f_v = level[yy, 3, c]
+            m_w = level[yy, 4, c]
+            d_u = du[yy, c]
+            d_v = dv[yy, c]
+            o_a12, o_b1, o_b2, o_i11, o_i22 = out[0, c], out[1, c], out[2, c], out[3, c], out[4, c]
+            # The smoothness acting on the fixed part of the flow and the sum
+            # of the links are parked in the output rows: split in two, each
+            # loop has few enough memory streams for LLVM to vectorise it.
+            for k in range(1, nk + 1):
+                west = k + p - 1
+                u0 = u_c[k]
+                v0 = v_c[k]
+                o_b1[k] = (
+                    e_c[k] * (u_o[k + p] - u0)
+                    + e_o[west] * (u_o[west] - u0)
+                    + s_c[k] * (u_s[k] - u0)
+                    + s_n[k] * (u_n[k] - u0)
                 )
-        for y in range(H):
-            for x in range(W):
-                if x < W - 1:
-                    wx[y, x] = 0.5 * (a_s[y, x] + a_s[y, x + 1])
-                if y < H - 1:
-                    wy[y, x] = 0.5 * (a_s[y, x] + a_s[y + 1, x])
-        # Linearised data and matching terms with frozen robust weights.
-        for y in range(H):
-            for x in range(W):
-                a11 = 0.0
-                a12 = 0.0
-                a22 = 0.0
-                r1 = 0.0
-                r2 = 0.0
-                if valid[y, x]:
-                    ix = Ix[y, x]
-                    iy = Iy[y, x]
-                    it = It[y, x]
-                    nc = 1.0 / (ix * ix + iy * iy + zeta2)
-                    rc = it + ix * du[y, x] + iy * dv[y, x]
-                    pc = delta * nc * _psi_prime(nc * rc * rc, eps2)
-                    ixx = Ixx[y, x]
-                    ixy = Ixy[y, x]
-                    iyy = Iyy[y, x]
-                    ixt = Ixt[y, x]
-                    iyt = Iyt[y, x]
-                    ngx = 1.0 / (ixx * ixx + ixy * ixy + zeta2)
-                    ngy = 1.0 / (ixy * ixy + iyy * iyy + zeta2)
-                    rx = ixt + ixx * du[y, x] + ixy * dv[y, x]
-                    ry = iyt + ixy * du[y, x] + iyy * dv[y, x]
-                    pg = gamma * _psi_prime(ngx * rx * rx + ngy * ry * ry, eps2)
-                    gx = pg * ngx
-                    gy = pg * ngy
-                    a11 = pc * ix * ix + gx * ixx * ixx + gy * ixy * ixy
-                    a12 = pc * ix * iy + gx * ixx * ixy + gy * ixy * iyy
-                    a22 = pc * iy * iy + gx * ixy * ixy + gy * iyy * iyy
-                    r1 = -(pc * ix * it + gx * ixx * ixt + gy * ixy * iyt)
-                    r2 = -(pc * iy * it + gx * ixy * ixt + gy * iyy * iyt)
-                if beta > 0.0 and mw[y, x] > 0.0:
-                    eu = u[y, x] + du[y, x] - mu[y, x]
-                    ev = v[y, x] + dv[y, x] - mv[y, x]
-                    pm = beta * mw[y, x] * _psi_prime(eu * eu + ev * ev, eps2)
-                    a11 += pm
-                    a22 += pm
-                    r1 -= pm * (u[y, x] - mu[y, x])
-                    r2 -= pm * (v[y, x] - mv[y, x])
-                # Smoothness acting on the fixed part of the flow.
-                su = 0.0
-                sv = 0.0
-                if x < W - 1:
-                    su += wx[y, x] * (u[y, x + 1] - u[y, x])
-                    sv += wx[y, x] * (v[y, x + 1] - v[y, x])
-                if x > 0:
-                    su += wx[y, x - 1] * (u[y, x - 1] - u[y, x])
-                    sv += wx[y, x - 1] * (v[y, x - 1] - v[y, x])
-                if y < H - 1:
-                    su += wy[y, x] * (u[y + 1, x] - u[y, x])
-                    sv += wy[y, x] * (v[y + 1, x] - v[y, x])
-                if y > 0:
-                    su += wy[y - 1, x] * (u[y - 1, x] - u[y, x])
-                    sv += wy[y - 1, x] * (v[y - 1, x] - v[y, x])
-                A11[y, x] = a11
-                A12[y, x] = a12
-                A22[y, x] = a22
-                b1[y, x] = r1 + su
-                b2[y, x] = r2 + sv
-        # Per-pixel link weights and inverse diagonals are fixed during the sweeps.
-        for y in range(H):
-            for x in range(W):
-                e = wx[y, x] if x < W - 1 else np.float32(0.0)
-                w_ = wx[y, x - 1] if x > 0 else np.float32(0.0)
-                s_ = wy[y, x] if y < H - 1 else np.float32(0.0)
-                n_ = wy[y - 1, x] if y > 0 else np.float32(0.0)
-                wE[y, x] = e
-                wW[y, x] = w_
-                wS[y, x] = s_
-                wN[y, x] = n_
-                sw = e + w_ + s_ + n_
-                d11 = A11[y, x] + sw
-                d22 = A22[y, x] + sw
-                inv11[y, x] = 1.0 / d11 if d11 > 0.0 else 0.0
-                inv22[y, x] = 1.0 / d22 if d22 > 0.0 else 0.0
-                dup[y + 1, x + 1] = du[y, x]
-                dvp[y + 1, x + 1] = dv[y, x]
-        _sor(dup, dvp, wE, wW, wS, wN, inv11, inv22, A12, b1, b2, n_sor, np.float32(omega))
-        for y in range(H):
-            for x in range(W):
-                du[y, x] = dup[y + 1, x + 1]
-                dv[y, x] = dvp[y + 1, x + 1]
-    return du, dv
+                o_b2[k] = (
+                    e_c[k] * (v_o[k + p] - v0)
+                    + e_o[west] * (v_o[west] - v0)
+                    + s_c[k] * (v_s[k] - v0)
+                    + s_n[k] * (v_n[k] - v0)
+                )
+                o_i11[k] = e_c[k] + e_o[west] + s_c[k] + s_n[k]
+            for k in range(1, nk + 1):
+                xu = d_u[k]
+                xv = d_v[k]
+                ix = g[0, c, k]
+                iy = g[1, c, k]
+                it = g[2, c, k]
+                nc = g[3, c, k]
+                ixx = g[4, c, k]
+                ixy = g[5, c, k]
+                iyy = g[6, c, k]
+                ixt = g[7, c, k]
+                iyt = g[8, c, k]
+                ngx = g[9, c, k]
+                ngy = g[10, c, k]
+                rc = it + ix * xu + iy * xv
+                pc = dl * nc / math.sqrt(nc * rc * rc + e2)
+                rx = ixt + ixx * xu + ixy * xv
+                ry = iyt + ixy * xu + iyy * xv
+                pg = gm / math.sqrt(ngx * rx * rx + ngy * ry * ry + e2)
+                gx = pg * ngx
+                gy = pg * ngy
+                eu = f_u[k] + xu
+                ev = f_v[k] + xv
+                pm = m_w[k] / math.sqrt(eu * eu + ev * ev + e2)
+                sw = o_i11[k]
+                d11 = pc * ix * ix + gx * ixx * ixx + gy * ixy * ixy + pm + sw
+                d22 = pc * iy * iy + gx * ixy * ixy + gy * iyy * iyy + pm + sw
+                o_a12[k] = pc * ix * iy + gx * ixx * ixy + gy * ixy * iyy
+                o_b1[k] = o_b1[k] - (pc * ix * it + gx * ixx * ixt + gy * ixy * iyt) - pm * f_u[k]
+                o_b2[k] = o_b2[k] - (pc * iy * it + gx * ixy * ixt + gy * iyy * iyt) - pm * f_v[k]
+                o_i11[k] = one / d11 if d11 > zero else zero
+                o_i22[k] = one / d22 if d22 > zero else zero
 
 
-def _deriv(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    gx = cv2.filter2D(image, cv2.CV_32F, _DERIV, borderType=cv2.BORDER_REPLICATE)
-    gy = cv2.filter2D(image, cv2.CV_32F, _DERIV.T, borderType=cv2.BORDER_REPLICATE)
-    return gx, gy
+# Rows between the row the setup starts on and the first SOR sweep's red row
+# in :func:`_outer_iteration`: the setup's four stages reach 3 rows back, and
+# the sweep must not touch a row before the setup has read its increments.
+_SETUP_LAG = 4
 
 
-def _warp(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
-    # Bicubic: bilinear warping biases quarter-pixel shifts by ~0.05 px on smooth texture.
-    return cv2.remap(image, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _outer_iteration(
+    level, data, du, dv, T, a, E, S, coef, delta, gamma, eps2, W, n_sor, omega, chunk
+):
+    """One fixed-point iteration: freeze the robust weights, then ``n_sor`` SOR sweeps.
+
+    The four setup stages (total flow, smoothness weights, links, linear
+    system) run one row behind each other, and the first ``chunk`` sweeps
+    follow ``_SETUP_LAG`` rows behind them, all in one pass over the rows:
+    what a stage writes is still in cache when the next one reads it. Each
+    row sees the same values as running the stages and sweeps one after
+    the other, so the result is the same (to rounding).
+    """
+    H = level.shape[0] - 2
+    om = np.float32(omega)
+    n = min(chunk, n_sor)
+    for t in range(H + _SETUP_LAG + 1 + 2 * (n - 1)):
+        if t < H:
+            _total_rows(level, du, dv, T, H, W, t, t + 1)
+        if 0 <= t - 1 < H:
+            _smoothness_rows(T, level, a, eps2, W, t - 1, t)
+        if 0 <= t - 2 < H:
+            _link_rows(a, E, S, H, W, t - 2, t - 1)
+        if 0 <= t - 3 < H:
+            _coef_rows(level, data, du, dv, E, S, coef, delta, gamma, eps2, t - 3, t - 2)
+        _sor_step(du, dv, E, S, coef, t - _SETUP_LAG, n, om)
+    if n_sor > n:
+        _sor(du, dv, E, S, coef, n_sor - n, omega, chunk)
+
+
+@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+def _solve_level(
+    level, data, W, delta, gamma, eps2, n_outer, n_sor, omega, chunk, du, dv, E, S, T, a, coef
+):
+    """Packed flow increments ``du``, ``dv`` (zero on entry) of one pyramid level.
+
+    ``n_outer`` fixed-point iterations freeze the robust weights at the
+    current flow and solve the linearised system with ``n_sor`` SOR sweeps.
+    ``E`` and ``S`` must be zero on entry; ``T``, ``a`` and ``coef`` are
+    scratch.
+    """
+    for _outer in range(n_outer):
+        _outer_iteration(
+            level, data, du, dv, T, a, E, S, coef, delta, gamma, eps2, W, n_sor, omega, chunk
+        )
+
+
+def _sor_chunk(width: int, n_sor: int) -> int:
+    """Sweeps per pass over memory so that the rows in flight fit ``_SOR_CACHE_BYTES``."""
+    row_bytes = 4 * (4 + _N_COEF) * max(width, 1)
+    rows = _SOR_CACHE_BYTES // row_bytes
+    return int(max(1, min(n_sor, (rows - 2) // 2)))
+
+
+def _packed_width(width: int) -> int:
+    """Last dimension of the packed arrays: whole 8-float vectors plus the ring."""
+    return ((width + 1) // 2 + 7) // 8 * 8 + 2
 
 
 def _level_sizes(
@@ -313,12 +772,74 @@ def _level_sizes(
     return sizes
 
 
-def _resize_flow(u: np.ndarray, v: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    sx = w / u.shape[1]
-    sy = h / u.shape[0]
-    u2 = cv2.resize(u, (w, h), interpolation=cv2.INTER_LINEAR) * np.float32(sx)
-    v2 = cv2.resize(v, (w, h), interpolation=cv2.INTER_LINEAR) * np.float32(sy)
-    return u2, v2
+def _resize_flow(flow: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Flow (H, W, 2) resampled to (h, w, 2) and rescaled to the new pixel size."""
+    out = cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
+    out *= np.array([w / flow.shape[1], h / flow.shape[0]], np.float32)
+    return out
+
+
+class _Pyramid:
+    """Area-averaged versions of an image at any scale.
+
+    Each level is resampled from the finest power-of-two reduction at or
+    above its scale (exact 2x2 box averages of one another), not from the
+    full image: the cost then follows the level's size, not the frame's.
+    """
+
+    def __init__(self, image: np.ndarray) -> None:
+        self._octaves = [image]
+
+    def level(self, h: int, w: int) -> np.ndarray:
+        """The image area-resampled to ``h`` x ``w``."""
+        if (h, w) == self._octaves[0].shape:
+            return self._octaves[0]
+        source = self._octaves[0]
+        k = 1
+        while True:
+            if k == len(self._octaves):
+                sh, sw = source.shape
+                if sh // 2 < h or sw // 2 < w:
+                    break
+                self._octaves.append(
+                    cv2.resize(source, (sw // 2, sh // 2), interpolation=cv2.INTER_AREA)
+                )
+            if self._octaves[k].shape[0] < h or self._octaves[k].shape[1] < w:
+                break
+            source = self._octaves[k]
+            k += 1
+        return cv2.resize(source, (w, h), interpolation=cv2.INTER_AREA)
+
+
+def _solve(
+    ws: Workspace,
+    params: VariationalParams,
+    level: np.ndarray,
+    data: np.ndarray,
+    h: int,
+    w: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Packed increments of one level (see :func:`_solve_level`)."""
+    shape = (h + 2, 2, _packed_width(w))
+    n_sor = int(params.n_sor)
+    zeroed = [ws.array(name, shape, zero=True) for name in ("du", "dv", "E", "S")]
+    _solve_level(
+        level,
+        data,
+        w,
+        float(params.delta),
+        float(params.gamma),
+        float(params.eps**2),
+        int(params.n_outer),
+        n_sor,
+        float(params.omega),
+        _sor_chunk(w, n_sor),
+        *zeroed,
+        ws.array("T", (h + 2, 2, 2, shape[2])),
+        ws.array("a", shape),
+        ws.array("coef", (h + 2, _N_COEF) + shape[1:]),
+    )
+    return zeroed[0], zeroed[1]
 
 
 def refine(
@@ -329,6 +850,7 @@ def refine(
     init_flow: np.ndarray | None = None,
     match_flow: np.ndarray | None = None,
     match_weight: np.ndarray | None = None,
+    workspace: Workspace | None = None,
 ) -> np.ndarray:
     """Coarse-to-fine minimisation of the DeepFlow energy.
 
@@ -341,11 +863,14 @@ def refine(
         Start flow at the coarsest level (resized down).
     match_flow, match_weight : ndarray (H, W, 2) and (H, W), optional
         Dense rasterised matches ``w'`` and their weights ``c * phi`` in [0, 1].
+    workspace : Workspace, optional
+        Scratch arrays to reuse (one per thread); a fresh one by default.
 
     Returns
     -------
     ndarray (H, W, 2) float32
     """
+    ws = workspace if workspace is not None else Workspace()
     scale_in = 1.0 / 255.0 if reference.dtype == np.uint8 else 1.0
     im1 = reference.astype(np.float32) * np.float32(scale_in)
     im2 = current.astype(np.float32) * np.float32(scale_in)
@@ -366,82 +891,53 @@ def refine(
     use_matches = match_flow is not None and match_weight is not None and params.beta > 0
     h0, w0, _ = levels[-1]
     if init_flow is not None:
-        u, v = _resize_flow(
-            init_flow[..., 0].astype(np.float32), init_flow[..., 1].astype(np.float32), h0, w0
-        )
+        flow = _resize_flow(np.ascontiguousarray(init_flow, dtype=np.float32), h0, w0)
     else:
-        u = np.zeros((h0, w0), np.float32)
-        v = np.zeros((h0, w0), np.float32)
-    zeta2 = params.zeta**2
-    eps2 = params.eps**2
+        flow = np.zeros((h0, w0, 2), np.float32)
+    pyr1, pyr2 = _Pyramid(im1), _Pyramid(im2)
+    if use_matches:
+        matches = np.ascontiguousarray(match_flow, dtype=np.float32)
+        weights = _Pyramid(np.float32(0.5 * params.beta) * match_weight.astype(np.float32))
     for h, w, scale in reversed(levels):
-        if u.shape != (h, w):
-            u, v = _resize_flow(u, v, h, w)
-        if (h, w) == (height, width):
-            i1, i2 = im1, im2
-        else:
-            i1 = cv2.resize(im1, (w, h), interpolation=cv2.INTER_AREA)
-            i2 = cv2.resize(im2, (w, h), interpolation=cv2.INTER_AREA)
-        i1x, i1y = _deriv(i1)
-        i2x, i2y = _deriv(i2)
-        grid_x, grid_y = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-        map_x = grid_x + u
-        map_y = grid_y + v
-        valid = ((map_x >= 0) & (map_x <= w - 1) & (map_y >= 0) & (map_y <= h - 1)).astype(np.uint8)
-        i2w = _warp(i2, map_x, map_y)
-        i2xw = _warp(i2x, map_x, map_y)
-        i2yw = _warp(i2y, map_x, map_y)
-        # Derivatives of the mean of both frames are less biased than either alone.
-        ix = 0.5 * (i1x + i2xw)
-        iy = 0.5 * (i1y + i2yw)
-        it = i2w - i1
-        i1xx, i1xy = _deriv(i1x)
-        _, i1yy = _deriv(i1y)
-        i2xx, i2xy = _deriv(i2x)
-        _, i2yy = _deriv(i2y)
-        ixx = 0.5 * (i1xx + _warp(i2xx, map_x, map_y))
-        ixy = 0.5 * (i1xy + _warp(i2xy, map_x, map_y))
-        iyy = 0.5 * (i1yy + _warp(i2yy, map_x, map_y))
-        ixt = i2xw - i1x
-        iyt = i2yw - i1y
+        flow_scale = (w / flow.shape[1], h / flow.shape[0])
+        if flow_scale != (1.0, 1.0):
+            flow = cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
+        i1 = pyr1.level(h, w)
         if params.edge_sigma > 0:
             # Edges of objects survive this blur, fine texture does not.
-            ex, ey = _deriv(cv2.GaussianBlur(i1, (0, 0), params.edge_sigma * scale))
+            edges = cv2.GaussianBlur(i1, (0, 0), params.edge_sigma * scale)
         else:
-            ex, ey = i1x, i1y
-        grad_mag = np.sqrt(ex * ex + ey * ey)
-        alpha_map = (params.alpha * np.exp(-params.kappa * grad_mag)).astype(np.float32)
-        beta_level = params.beta if (use_matches and scale <= params.match_max_scale) else 0.0
-        if beta_level > 0:
-            mu, mv = _resize_flow(match_flow[..., 0], match_flow[..., 1], h, w)
-            mw = cv2.resize(match_weight.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+            edges = i1
+        alpha = ws.array("alpha", (h, w))
+        _gradient_magnitude(edges, alpha, ws.array("gy", (h, w)))
+        alpha *= np.float32(-params.kappa)
+        np.exp(alpha, out=alpha)
+        alpha *= np.float32(params.alpha)
+        if use_matches and scale <= params.match_max_scale:
+            match = cv2.resize(matches, (w, h), interpolation=cv2.INTER_LINEAR)
+            match_scale = (w / width, h / height)
+            half_weight = weights.level(h, w)
         else:
-            mu = mv = mw = np.zeros((1, 1), np.float32)
-        du, dv = _solve_level(
-            ix,
-            iy,
-            it,
-            ixx,
-            ixy,
-            iyy,
-            ixt,
-            iyt,
-            valid,
-            alpha_map,
-            u,
-            v,
-            mu,
-            mv,
-            mw,
-            float(params.delta),
-            float(params.gamma),
-            float(beta_level),
-            float(zeta2),
-            float(eps2),
-            int(params.n_outer),
-            int(params.n_sor),
-            float(params.omega),
+            match = ws.array("no_match", (h, w, 2), zero=True)
+            match_scale = (1.0, 1.0)
+            half_weight = ws.array("no_weight", (h, w), zero=True)
+        packed = (2, _packed_width(w))
+        data = ws.array("data", (h + 2, _N_DATA) + packed)
+        level = ws.array("level", (h + 2, _N_LEVEL) + packed)
+        _prepare_level(
+            i1,
+            pyr2.level(h, w),
+            flow,
+            flow_scale,
+            match,
+            match_scale,
+            half_weight,
+            alpha,
+            float(params.zeta**2),
+            ws.array("planes", (13, h, w)),
+            data,
+            level,
         )
-        u = u + du
-        v = v + dv
-    return np.dstack([u, v]).astype(np.float32)
+        du, dv = _solve(ws, params, level, data, h, w)
+        flow = _add_increment(flow, du, dv)
+    return flow

@@ -20,7 +20,7 @@ import numpy as np
 
 from flow.deepmatching import MatchParams, deep_matching, densify
 from flow.registry import DenseMethod, check_pair, register
-from flow.variational import VariationalParams, refine
+from flow.variational import VariationalParams, Workspace, refine
 
 _MATCH_FIELDS = {f.name for f in dataclasses.fields(MatchParams)}
 _VAR_FIELDS = {f.name for f in dataclasses.fields(VariationalParams)}
@@ -73,6 +73,8 @@ class DeepFlow(DenseMethod):
     def __init__(self, *, preset: str = "default", **params: Any) -> None:
         merged = _resolve(preset, params)
         self._match, self._var = _split(merged)
+        # Scratch reused from frame to frame: an instance serves one thread at a time.
+        self._workspace = Workspace()
         super().__init__(
             preset=preset, **dataclasses.asdict(self._match), **dataclasses.asdict(self._var)
         )
@@ -83,9 +85,14 @@ class DeepFlow(DenseMethod):
             grid = deep_matching(reference, current, self._match)
             match_flow, match_weight = densify(grid, reference.shape, nearest=True)
             return refine(
-                reference, current, self._var, match_flow=match_flow, match_weight=match_weight
+                reference,
+                current,
+                self._var,
+                match_flow=match_flow,
+                match_weight=match_weight,
+                workspace=self._workspace,
             )
-        return refine(reference, current, self._var)
+        return refine(reference, current, self._var, workspace=self._workspace)
 
 
 @register("deepmatching")

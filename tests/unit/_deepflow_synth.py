@@ -65,6 +65,28 @@ def visible(truth: np.ndarray) -> np.ndarray:
     return (tx >= 0) & (tx <= width - 1) & (ty >= 0) & (ty <= height - 1)
 
 
+def smooth_noise(height: int, width: int, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """Periodic Gaussian-filtered white noise (filtered in the Fourier domain), unit std."""
+    fy = np.fft.fftfreq(height)[:, None]
+    fx = np.fft.fftfreq(width)[None, :]
+    spectrum = np.fft.fft2(rng.standard_normal((height, width)))
+    noise = np.fft.ifft2(spectrum * np.exp(-2 * np.pi**2 * sigma**2 * (fx**2 + fy**2))).real
+    return (noise / noise.std()).astype(np.float32)
+
+
+def fourier_shift(image: np.ndarray, shift_x: float, shift_y: float = 0.0) -> np.ndarray:
+    """``image`` moved by (shift_x, shift_y) px, wrapping around; exact for periodic content.
+
+    Cubic interpolation would not do for sub-pixel ground truth: OpenCV's
+    INTER_CUBIC (Keys a = -0.75) moves smooth content by up to 0.04 px more
+    or less than asked.
+    """
+    fy = np.fft.fftfreq(image.shape[0])[:, None]
+    fx = np.fft.fftfreq(image.shape[1])[None, :]
+    phase = np.exp(-2j * np.pi * (fx * shift_x + fy * shift_y))
+    return np.fft.ifft2(np.fft.fft2(image) * phase).real.astype(np.float32)
+
+
 def low_texture_pair(
     shift_x: float,
     shift_y: float,
@@ -74,20 +96,11 @@ def low_texture_pair(
     contrast: float = 15.0,
 ):
     """Smooth, low-contrast noise (std ``contrast`` grey levels) translated by a sub-pixel amount (uint8)."""
-    rng = np.random.default_rng(seed)
-    pad = 20
-    noise = cv2.GaussianBlur(
-        rng.standard_normal((height + 2 * pad, width + 2 * pad)).astype(np.float32), (0, 0), 5
+    noise = smooth_noise(height, width, 5.0, np.random.default_rng(seed))
+    return (
+        to_u8(128 + contrast * noise),
+        to_u8(128 + contrast * fourier_shift(noise, shift_x, shift_y)),
     )
-    noise /= noise.std()
-    gx, gy = grid(height, width)
-
-    def render(sx: float, sy: float) -> np.ndarray:
-        return to_u8(
-            128 + contrast * cv2.remap(noise, gx + pad - sx, gy + pad - sy, cv2.INTER_CUBIC)
-        )
-
-    return render(0.0, 0.0), render(shift_x, shift_y)
 
 
 def bar_frames(
@@ -96,20 +109,18 @@ def bar_frames(
     """A painted, nearly texture-free bar moving right over a static textured background.
 
     Returns the reference frame, the list of current frames and a POI mask
-    inside the bar (6 px clear of its edges).
+    inside the bar (6 px clear of its edges). The bar's edges are
+    area-sampled and its paint is moved exactly (Fourier shift), so
+    ``shifts`` is the true displacement to well below 0.01 px.
     """
-    rng = np.random.default_rng(11)
     background = textured(height, width, seed=7)
     pad = 20
-    paint = cv2.GaussianBlur(
-        rng.standard_normal((height, width + 2 * pad)).astype(np.float32), (0, 0), 6
-    )
-    paint = 200 + bar_std * paint / paint.std()
-    gx, gy = grid(height, width)
+    paint = 200 + bar_std * smooth_noise(height, width + 2 * pad, 6.0, np.random.default_rng(11))
+    gx, _ = grid(height, width)
 
     def render(shift: float) -> np.ndarray:
         cover = np.clip(np.minimum(gx + 0.5 - (x0 + shift), (x1 + shift) - (gx - 0.5)), 0, 1)
-        tex = cv2.remap(paint, (gx + pad - shift).astype(np.float32), gy, cv2.INTER_CUBIC)
+        tex = fourier_shift(paint, shift)[:, pad : pad + width]
         return to_u8(background * (1 - cover) + tex * cover)
 
     poi = np.zeros((height, width), bool)

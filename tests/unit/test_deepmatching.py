@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import flow.deepmatching as dm
 import flow.methods.deepflow as deepflow_module
 from flow.deepmatching import MatchParams, deep_matching, densify, pixel_descriptors
 
@@ -68,6 +69,46 @@ def test_dense_interpolation(large_pair):
     grid = deep_matching(reference, current, MatchParams(ngh_rad=64))
     _, weight = densify(grid, reference.shape, nearest=True)
     assert weight.shape == reference.shape and weight.max() <= 1.0
+
+
+def test_shared_products_give_both_directions_correlations():
+    rng = np.random.default_rng(4)
+    f1 = rng.random((8, 22, 30), dtype=np.float32)
+    f2 = rng.random((8, 22, 30), dtype=np.float32)
+    f1[:, 8:12, 4:8] = 0.0  # a blank patch has no correlation
+    n1, n2 = dm._patch_norms(f1), dm._patch_norms(f2)
+    ny, nx, R = 5, 7, 3
+    D = 2 * R + 1
+    forward = np.zeros((ny, D, D, nx), np.float32)
+    backward = np.zeros_like(forward)
+    dm._atomic_both(f1, f2, n1, n2, R, 0, 4, forward, backward)
+    dm._atomic_both(f1, f2, n1, n2, R, 4, D, forward, backward)
+
+    def correlation(a, b, na, nb, i, j, dy, dx):
+        y, x = 4 * i + dy, 4 * j + dx
+        if not (0 <= y <= a.shape[1] - 4 and 0 <= x <= a.shape[2] - 4):
+            return 0.0
+        if na[4 * i, 4 * j] <= 1e-6 or nb[y, x] <= 1e-6:
+            return 0.0
+        dot = np.sum(a[:, 4 * i : 4 * i + 4, 4 * j : 4 * j + 4] * b[:, y : y + 4, x : x + 4])
+        return dot / (na[4 * i, 4 * j] * nb[y, x])
+
+    for i in range(ny):
+        for j in range(nx):
+            for k in range(D):
+                for kx in range(D):
+                    fw = correlation(f1, f2, n1, n2, i, j, k - R, kx - R)
+                    bw = correlation(f2, f1, n2, n1, i, j, k - R, kx - R)
+                    assert forward[i, k, kx, j] == pytest.approx(fw, abs=1e-5)
+                    assert backward[i, k, kx, j] == pytest.approx(bw, abs=1e-5)
+
+
+def test_fast_power_matches_pow():
+    x = np.concatenate([np.linspace(0.0, 1.0, 10001), [1e-20, 3e-8]]).astype(np.float32)
+    y = x.copy()
+    dm._power(y, 1.4, np.empty(x.size, np.int32))
+    truth = x.astype(np.float64) ** 1.4
+    assert np.all(np.abs(y - truth) <= 2e-6 * truth + 1e-30)
 
 
 def test_bad_parameters():
