@@ -37,6 +37,39 @@ def parse_board(text: str) -> tuple[int, int]:
     return cols, rows
 
 
+SEARCH_SIDE_PX = 1600  # the board is searched for at this size, then refined at full size
+
+
+def find_corners(grey: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
+    """Sub-pixel inner corners of the board in a grey image, or None.
+
+    The board search of ``findChessboardCorners`` takes tens of seconds on a 4K
+    frame; it runs on a copy reduced to :data:`SEARCH_SIDE_PX` (and at full size
+    only if that fails), and ``cornerSubPix`` then refines the corners on the
+    full-resolution image with a window matched to the board's square size.
+    """
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    shrink = min(1.0, SEARCH_SIDE_PX / max(grey.shape))
+    found, corners = False, None
+    if shrink < 1.0:
+        small = cv2.resize(grey, None, fx=shrink, fy=shrink, interpolation=cv2.INTER_AREA)
+        found, corners = cv2.findChessboardCorners(small, board, flags=flags)
+        if found:
+            # INTER_AREA maps pixel centres by (x + 0.5) * shrink - 0.5
+            corners = ((corners + 0.5) / shrink - 0.5).astype(np.float32)
+    if not found:
+        found, corners = cv2.findChessboardCorners(grey, board, flags=flags)
+    if not found:
+        return None
+    # Half the smallest spacing of neighbouring corners keeps the window inside one square.
+    grid = corners.reshape(board[1], board[0], 2)
+    spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
+                  np.linalg.norm(np.diff(grid, axis=0), axis=2).min())
+    half = int(np.clip(spacing / 4, 3, 15))
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
+    return cv2.cornerSubPix(grey, corners, (half, half), (-1, -1), criteria)
+
+
 def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
               max_views: int = 60, fix_k3: bool = True, step: int = 1) -> dict[str, Any]:
     """Calibrate intrinsics and distortion from checkerboard views.
@@ -71,16 +104,13 @@ def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
     frames = FrameSource(source, require_fps=False, allow_truncated=True)
     obj = board_points(*board, square_mm)
     image_points = []
-    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for index, _, grey in frames:
             if index % step:
                 continue
-            found, corners = cv2.findChessboardCorners(
-                grey, board, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
-            if found:
-                corners = cv2.cornerSubPix(grey, corners, (5, 5), (-1, -1), criteria)
+            corners = find_corners(grey, board)
+            if corners is not None:
                 image_points.append(corners)
     if len(image_points) < 3:
         raise InputError(
