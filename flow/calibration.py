@@ -157,7 +157,8 @@ class Undistorter:
     pinhole pixel (u + roi.x, v + roi.y) of the full sensor.
     """
 
-    def __init__(self, calibration: dict[str, Any], roi: Roi, frame_size: tuple[int, int]) -> None:
+    def __init__(self, calibration: dict[str, Any], roi: Roi, frame_size: tuple[int, int], *,
+                 video_origin: tuple[int, int] = (0, 0)) -> None:
         camera = np.asarray(calibration["camera_matrix"], np.float64).reshape(3, 3)
         dist = np.asarray(calibration["dist_coeffs"], np.float64).ravel()
         cal_size = tuple(calibration.get("image_size", frame_size))
@@ -176,6 +177,8 @@ class Undistorter:
         self.map_y = map_y - np.float32(roi.y)
         self.camera = camera
         self.dist = dist
+        # Raw video pixels are sensor pixels minus this (a cropped recording, --video-origin).
+        self.origin = np.asarray(video_origin, np.float64)
 
     def __call__(self, grey_roi: np.ndarray) -> np.ndarray:
         return cv2.remap(grey_roi, self.map_x, self.map_y, cv2.INTER_LINEAR,
@@ -192,11 +195,22 @@ class Undistorter:
         return moved > 127
 
     def undistort_points(self, points_xy: np.ndarray) -> np.ndarray:
-        """Raw full-frame pixel ``(x, y)`` points to undistorted full-frame pixels."""
-        points = np.asarray(points_xy, np.float64).reshape(-1, 1, 2)
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
-        ideal = cv2.undistortPoints(points, self.camera, self.dist, None, None, self.camera, criteria)
-        return ideal.reshape(-1, 2)
+        """Raw video pixel ``(x, y)`` points to undistorted sensor pixels."""
+        return undistort_points(points_xy, self.camera, self.dist, self.origin)
+
+
+def undistort_points(points_xy: np.ndarray, camera_matrix: Any, dist_coeffs: Any,
+                     video_origin: Any = (0, 0)) -> np.ndarray:
+    """Raw video pixel ``(x, y)`` points to undistorted sensor pixels.
+
+    ``video_origin``: the sensor pixel of the video's pixel (0, 0) (a cropped recording).
+    """
+    camera = np.asarray(camera_matrix, np.float64).reshape(3, 3)
+    points = (np.asarray(points_xy, np.float64).reshape(-1, 2) + np.asarray(video_origin, np.float64))
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    ideal = cv2.undistortPoints(points.reshape(-1, 1, 2), camera, np.asarray(dist_coeffs, np.float64),
+                                None, None, camera, criteria)
+    return ideal.reshape(-1, 2)
 
 
 def scale_from_known_length(length_mm: float, between: str,

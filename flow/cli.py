@@ -58,13 +58,45 @@ def _open(args: argparse.Namespace, *, need_time: bool = True) -> FrameSource:
                        allow_truncated=getattr(args, "allow_truncated", False))
 
 
+def _video_origin(args: argparse.Namespace) -> tuple[int, int]:
+    text = getattr(args, "video_origin", None)
+    if text is None:
+        return 0, 0
+    if not args.calibration:
+        raise InputError("--video-origin places the video on the calibrated sensor: pass --calibration too")
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"--video-origin {text!r} is not X,Y (two integers)") from None
+    if x < 0 or y < 0:
+        raise InputError(f"--video-origin {text!r} must not be negative")
+    return x, y
+
+
 def _undistorter(args: argparse.Namespace, source: FrameSource) -> tuple[Any, dict[str, Any] | None]:
+    """The undistortion of --calibration for the frames' ROI (None without a calibration).
+
+    With ``--video-origin X,Y`` the video is a window of the calibrated sensor (a
+    cropped recording) whose pixel (0, 0) is sensor pixel (X, Y).
+    """
+    origin = _video_origin(args)
     if not args.calibration:
         return None, None
     from flow.calibration import Undistorter, load_calibration
 
     calibration = load_calibration(args.calibration)
-    return Undistorter(calibration, source.roi, source.size), calibration
+    if origin == (0, 0):
+        return Undistorter(calibration, source.roi, source.size), calibration
+    sensor = tuple(calibration.get("image_size", ()))
+    if len(sensor) != 2:
+        raise InputError(f"calibration file {args.calibration!r} has no image_size: --video-origin needs "
+                         "the calibrated sensor's size")
+    roi = source.roi
+    on_sensor = Roi(roi.x + origin[0], roi.y + origin[1], roi.width, roi.height)
+    if on_sensor.x + source.size[0] - roi.x > sensor[0] or on_sensor.y + source.size[1] - roi.y > sensor[1]:
+        raise InputError(f"a {source.size[0]}x{source.size[1]} video at --video-origin {origin[0]},{origin[1]} "
+                         f"reaches beyond the {sensor[0]}x{sensor[1]} calibrated sensor")
+    return Undistorter(calibration, on_sensor, sensor, video_origin=origin), calibration
 
 
 def _mask_for(args: argparse.Namespace, source: FrameSource, undistort: Any) -> np.ndarray:
@@ -304,7 +336,8 @@ def _calibration_summary(args: argparse.Namespace, calibration: dict[str, Any] |
     if calibration is None:
         return None
     return {"file": str(args.calibration), "rms_px": calibration.get("rms_px"),
-            "camera_matrix": calibration["camera_matrix"], "dist_coeffs": calibration["dist_coeffs"]}
+            "camera_matrix": calibration["camera_matrix"], "dist_coeffs": calibration["dist_coeffs"],
+            "video_origin": list(_video_origin(args))}
 
 
 def cmd_track(args: argparse.Namespace) -> int:
@@ -415,13 +448,14 @@ def cmd_merge(args: argparse.Namespace) -> int:
     tracks, metas = track.load_raw_tracks(args.parts, store_dir=store_dir if store_dir.is_dir() else None)
     first = metas[0]
     undistort_points = None
-    if first["calibration"] is not None and args.known_length is not None:
-        from flow.calibration import Undistorter
+    calibration = first["calibration"]
+    if calibration is not None and args.known_length is not None:
+        from flow.calibration import undistort_points as undistort
 
         # --between is in raw video pixels, like in `track`; the parts were measured undistorted.
-        roi = Roi(**first["roi"])
-        undistort_points = Undistorter(first["calibration"] | {"image_size": first["input"]["frame_size"]},
-                                       roi, tuple(first["input"]["frame_size"])).undistort_points
+        def undistort_points(points):
+            return undistort(points, calibration["camera_matrix"], calibration["dist_coeffs"],
+                             calibration.get("video_origin", (0, 0)))
     mm_per_px, scale_source = _scale(args, undistort_points)
     notes = [note for meta in metas for note in meta.get("notes", []) if "no scale given" not in note]
     if scale_source.startswith("none"):
@@ -508,6 +542,8 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fps", type=float, help="frame rate of an image folder (required there; videos: from the file)")
     p.add_argument("--calibration", help="calibration JSON from `refflow calibrate`: frames are undistorted, "
                    "and the mask/--rect/--polygon/--between drawn on raw frames are carried along")
+    p.add_argument("--video-origin", metavar="X,Y", help="the video is a window of the calibrated sensor "
+                   "whose top-left pixel is sensor pixel X,Y (a cropped recording)")
     p.add_argument("--mask", help="binary mask PNG (full-frame or ROI size, raw video pixels), white = POI")
     p.add_argument("--rect", help="POIs in rectangle X,Y,W,H (raw full-frame pixels)")
     p.add_argument("--polygon", help="POIs in polygon X1,Y1,X2,Y2,... (raw full-frame pixels)")

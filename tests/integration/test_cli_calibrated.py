@@ -91,3 +91,42 @@ def test_undistortion_removes_the_lens_scale_error(lens_clip, tmp_path) -> None:
     meta = json.loads((tmp_path / "out2.csv").with_suffix(".json").read_text())
     assert meta["scale"]["mm_per_px"] == pytest.approx(MM_PER_IDEAL_PX, rel=0.002)
     assert meta["calibration"]["camera_matrix"] == K.tolist()
+
+
+def test_cropped_recording_uses_the_full_sensor_calibration(lens_clip, tmp_path) -> None:
+    """A video that is a window of the calibrated sensor (--video-origin) measures like
+    the full frames with that window as --roi."""
+    x0, y0, w, h = 4, 2, 160, 120
+    crops = tmp_path / "crops"
+    crops.mkdir()
+    for path in sorted(lens_clip["frames"].iterdir()):
+        cv2.imwrite(str(crops / path.name), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)[y0:y0 + h, x0:x0 + w])
+    (x1, y1, x2, y2) = (float(v) for v in lens_clip["between"].split(","))
+    common = ["--fps", "30", "--method", "dis", "--known-length", str(100 * MM_PER_IDEAL_PX),
+              "--calibration", str(lens_clip["calibration"]), "--no-progress"]
+    whole, cropped = tmp_path / "whole.csv", tmp_path / "cropped.csv"
+    assert main(["track", str(lens_clip["frames"]), "--roi", f"{x0},{y0},{w},{h}", "--rect", "10,8,106,78",
+                 "--between", lens_clip["between"], *common, "--out", str(whole)]) == 0
+    assert main(["track", str(crops), "--video-origin", f"{x0},{y0}", "--rect", f"{10 - x0},{8 - y0},106,78",
+                 "--between", f"{x1 - x0},{y1 - y0},{x2 - x0},{y2 - y0}", *common, "--out", str(cropped)]) == 0
+    a, b = (list(csv.DictReader(p.open())) for p in (whole, cropped))
+    for key in ("dx_px", "dy_px", "dx_mm"):
+        assert np.allclose([float(r[key]) for r in a], [float(r[key]) for r in b], atol=1e-6), key
+    assert json.loads(cropped.with_suffix(".json").read_text())["calibration"]["video_origin"] == [x0, y0]
+    # Parts of the cropped run merge to the same numbers (the scale from --between needs the origin).
+    between = f"{x1 - x0},{y1 - y0},{x2 - x0},{y2 - y0}"
+    parts = []
+    for span in ("0:3", "3:8"):
+        parts.append(str(tmp_path / f"part{span[0]}.npz"))
+        assert main(["track", str(crops), "--video-origin", f"{x0},{y0}", "--rect", f"{10 - x0},{8 - y0},106,78",
+                     *common, "--between", between, "--frames", span, "--raw-tracks", parts[-1]]) == 0
+    merged = tmp_path / "merged.csv"
+    assert main(["merge", *parts, "--known-length", str(100 * MM_PER_IDEAL_PX), "--between", between,
+                 "--out", str(merged)]) == 0
+    assert merged.read_text() == cropped.read_text()
+    # A window that does not fit on the sensor, and an origin without a calibration, are refused.
+    assert main(["track", str(crops), "--video-origin", "200,0", "--rect", "0,0,50,50", *common,
+                 "--out", str(tmp_path / "bad.csv")]) == 2
+    assert main(["track", str(crops), "--video-origin", "1,1", "--rect", "0,0,50,50", "--fps", "30",
+                 "--out", str(tmp_path / "bad.csv"), "--no-progress"]) == 2
+    assert not (tmp_path / "bad.csv").exists()
