@@ -193,9 +193,13 @@ def cmd_methods(args: argparse.Namespace) -> int:
     return 0
 
 
-def _scale_from_file(path: str) -> float:
-    """``mm_per_px`` from a JSON file (a scale file, or any sidecar that records one)."""
+def _scale_from_file(path: str, undistort_points: Any) -> tuple[float, str]:
+    """``(mm_per_px, how)`` from a JSON file: its ``mm_per_px``, or a known length
+    ``known_length_mm`` between two raw video points ``between_px`` [X1, Y1, X2, Y2]
+    (measured in the undistorted image with a calibration, like --known-length)."""
     import json
+
+    from flow.calibration import scale_from_known_length
 
     try:
         data = json.loads(Path(path).read_text())
@@ -203,10 +207,22 @@ def _scale_from_file(path: str) -> float:
         raise InputError(f"scale file {path} does not exist") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise InputError(f"scale file {path} is not readable JSON: {err}") from None
-    value = data.get("mm_per_px") if isinstance(data, dict) else None
+    data = data if isinstance(data, dict) else {}
+    if "known_length_mm" in data or "between_px" in data:
+        length, between = data.get("known_length_mm"), data.get("between_px")
+        if not (isinstance(length, (int, float)) and isinstance(between, list) and len(between) == 4
+                and all(isinstance(v, (int, float)) for v in between)):
+            raise InputError(f"scale file {path}: 'known_length_mm' needs a number and 'between_px' "
+                             f"four numbers X1,Y1,X2,Y2, got {length!r} and {between!r}")
+        text = ",".join(f"{float(v):.6f}" for v in between)
+        mm_per_px = scale_from_known_length(float(length), text, undistort_points)
+        where = " (undistorted)" if undistort_points is not None else ""
+        return mm_per_px, f"known length {length} mm between {text} from {path}{where}"
+    value = data.get("mm_per_px")
     if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
-        raise InputError(f"scale file {path} needs a positive number under 'mm_per_px', got {value!r}")
-    return float(value)
+        raise InputError(f"scale file {path} needs a positive number under 'mm_per_px' (or "
+                         f"'known_length_mm' and 'between_px'), got {value!r}")
+    return float(value), f"mm_per_px from {path}"
 
 
 def _check_scale_options(args: argparse.Namespace) -> None:
@@ -225,7 +241,7 @@ def _scale(args: argparse.Namespace, undistort_points: Any) -> tuple[float, str]
     from flow.calibration import scale_from_known_length
 
     if args.scale_file is not None:
-        return _scale_from_file(args.scale_file), f"mm_per_px from {args.scale_file}"
+        return _scale_from_file(args.scale_file, undistort_points)
     if args.known_length is not None:
         mm_per_px = scale_from_known_length(args.known_length, args.between, undistort_points)
         where = " (undistorted)" if undistort_points is not None else ""
@@ -557,7 +573,8 @@ def _add_measure_options(p: argparse.ArgumentParser, *, out_required: bool) -> N
     p.add_argument("--mm-per-px", type=float, help="image scale at the structure, mm per pixel")
     p.add_argument("--known-length", type=float, help="known length in mm between the --between points")
     p.add_argument("--between", help="X1,Y1,X2,Y2 raw image points spanning --known-length")
-    p.add_argument("--scale-file", help="JSON file holding a positive 'mm_per_px'")
+    p.add_argument("--scale-file", help="JSON file holding a positive 'mm_per_px', or 'known_length_mm' and "
+                   "'between_px' [X1, Y1, X2, Y2] (raw video pixels, like --known-length/--between)")
     p.add_argument("--save-poi-tracks", help="write the per-POI displacement matrix to this .npz")
     p.add_argument("--filter", choices=("paper", "median", "none"),
                    help="paper: eq. 10-12 (default for dense); median: same filters, median average; "

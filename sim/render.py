@@ -421,6 +421,20 @@ class BeamRenderer:
             pts = self.shapes.material_to_world(t_sim, a, self.face_y_mm, z0)
         return pts[0], pts[1:]
 
+    def scale_points(self) -> np.ndarray:
+        """Where a user clicks the beam's two edges (its thickness, the paper's scale
+        reference) on frame 0 at the measurement height: ``[x1, y1, x2, y2]`` raw
+        window pixels, exact (a perfect click)."""
+        half = self.scene_cfg.beam_thickness_mm / 2
+        t_sim = 0.5 * self.cam_cfg.exposure_s + self.cam_cfg.start_offset_s
+        a, z0 = np.array([-half, half]), np.full(2, self.measure_point[2])
+        if self.shapes is None:
+            edges = np.stack([a, np.full(2, self.face_y_mm), z0], -1)
+        else:
+            edges = self.shapes.material_to_world(t_sim, a, self.face_y_mm, z0)
+        pixels = self.camera.project(edges) - [self.window.x, self.window.y]
+        return pixels.ravel()
+
     def truth_frame(self, index: int) -> dict[str, Any]:
         """Ground truth of frame ``index`` (see ``sim.truth_io`` for the columns),
         averaged over the image's own sub-frames and row weights."""
@@ -517,7 +531,7 @@ def render_clip(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path,
     Frames go straight to the encoder and the truth to its files frame by
     frame (``sim.truth_io``): memory does not grow with the clip's length.
     """
-    from refflow.io import atomic_paths, config_hash, versions, write_json
+    from refflow.io import atomic_paths, config_hash, json_text, versions, write_json
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     codec = CodecConfig.from_config(config)
@@ -532,9 +546,9 @@ def render_clip(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path,
         ae = AutoExposure(r.cam_cfg)
         spent = {"meter_s": 0.0, "truth_s": 0.0}
         frame_times = []
-        outputs = (video, out_dir / "mask.png", out_dir / "background.png", out_dir / "poi_truth.npz",
-                   out_dir / "truth.csv")
-        with atomic_paths(*outputs) as (tmp_video, tmp_mask, tmp_background, tmp_npz, tmp_csv):
+        outputs = (video, out_dir / "mask.png", out_dir / "background.png", out_dir / "scale.json",
+                   out_dir / "poi_truth.npz", out_dir / "truth.csv")
+        with atomic_paths(*outputs) as (tmp_video, tmp_mask, tmp_background, tmp_scale, tmp_npz, tmp_csv):
             with VideoWriter(tmp_video, w.width, w.height, r.cam_cfg.fps, codec) as writer, \
                     TruthWriter(tmp_csv, tmp_npz, poi_x_px=r.poi_window_px[:, 0],
                                 poi_y_px=r.poi_window_px[:, 1]) as truth_out:
@@ -554,6 +568,12 @@ def render_clip(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path,
                     frame_times.append(t2 - t1)
             cv2.imwrite(str(tmp_mask), r.mask)
             cv2.imwrite(str(tmp_background), r.background_mask())
+            # the scale as the paper's user takes it (refflow track --scale-file reads it)
+            tmp_scale.write_text(json_text({
+                "known_length_mm": r.scene_cfg.beam_thickness_mm,
+                "between_px": [round(float(v), 4) for v in r.scale_points()],
+                "what": "the beam's front-face edges at the measurement height on frame 0 (raw video "
+                        "pixels, exact); their distance is the beam thickness"}))
         meta = r.metadata()
         ft = np.array(frame_times) if frame_times else np.zeros(1)
         meta.update({

@@ -321,6 +321,17 @@ def test_scale_file_gives_the_mm_columns(clip, tmp_path) -> None:
     for row in rows:
         assert float(row["dx_mm"]) == pytest.approx(0.25 * float(row["dx_px"]), abs=1e-6)
     assert json.loads(out.with_suffix(".json").read_text())["scale"]["mm_per_px"] == 0.25
+    # or a known length between two points (what a user clicked on the reference frame)
+    scale.write_text('{"known_length_mm": 5.0, "between_px": [10, 20, 10, 40]}')
+    assert main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis",
+                 "--scale-file", str(scale), "--max-frames", "3", "--out", str(out), "--no-progress"]) == 0
+    meta = json.loads(out.with_suffix(".json").read_text())["scale"]
+    assert meta["mm_per_px"] == 0.25 and "known length 5.0 mm" in meta["source"]
+    scale.write_text('{"known_length_mm": 5.0, "between_px": [10, 20]}')
+    assert main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis",
+                 "--scale-file", str(scale), "--max-frames", "3", "--out", str(tmp_path / "bad.csv"),
+                 "--no-progress"]) == 2
+    assert not (tmp_path / "bad.csv").exists()
 
 
 def test_a_real_bug_shows_its_traceback(clip, tmp_path, monkeypatch) -> None:

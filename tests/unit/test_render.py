@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 
 import cv2
 import numpy as np
@@ -685,8 +686,8 @@ def test_flicker_aliases_and_clouds_drift_the_frame_brightness(shapes):
 def test_render_clip_writes_documented_files_streamed(shapes, tmp_path):
     cfg = {**_small_config(shake=True), "codec": {"name": "ffv1"}}
     meta = render_clip(cfg, shapes, tmp_path, max_frames=4, progress=False)
-    assert {p.name for p in tmp_path.iterdir()} == {"video.mkv", "mask.png", "background.png", "truth.csv",
-                                                     "poi_truth.npz", "render.json"}
+    assert {p.name for p in tmp_path.iterdir()} == {"video.mkv", "mask.png", "background.png", "scale.json",
+                                                     "truth.csv", "poi_truth.npz", "render.json"}
     with (tmp_path / "truth.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0]) == ["frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "occluded",
@@ -702,6 +703,12 @@ def test_render_clip_writes_documented_files_streamed(shapes, tmp_path):
     assert cols.min() < poi_cols.min() and cols.max() > poi_cols.max()
     gap = np.abs(cols[:, None] - poi_cols[None, :]).min()
     assert gap >= 12 and not (background & mask).any()
+    # the scale reference: the beam's edges, its thickness apart, across the POIs' row band
+    scale = json.loads((tmp_path / "scale.json").read_text())
+    x1, y1, x2, y2 = scale["between_px"]
+    assert scale["known_length_mm"] == 5.0
+    assert x1 < poi_cols.min() and x2 > poi_cols.max() and abs(y2 - y1) < 0.01
+    assert (x2 - x1) == pytest.approx(5.0 / meta["mm_per_px"], rel=0.01)
     r = BeamRenderer(cfg, shapes)
     try:
         raw = r.frame(0, r.gains(1)[0])
