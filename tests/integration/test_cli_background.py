@@ -7,9 +7,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from test_cli_track import read_csv, texture
 
 from flow.cli import main
-from test_cli_track import read_csv, texture
 
 W, H, N = 200, 120, 40
 BAR = slice(45, 75)
