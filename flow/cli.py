@@ -64,10 +64,20 @@ def _video_origin(args: argparse.Namespace) -> tuple[int, int]:
         return 0, 0
     if not args.calibration:
         raise InputError("--video-origin places the video on the calibrated sensor: pass --calibration too")
+    if text.lower().endswith(".json"):
+        import json
+
+        try:
+            origin = json.loads(Path(text).read_text()).get("video_origin_px")
+        except (OSError, ValueError, AttributeError) as err:
+            raise InputError(f"--video-origin {text!r} is not a readable JSON file ({err})") from None
+        if not (isinstance(origin, list) and len(origin) == 2):
+            raise InputError(f"--video-origin {text!r} needs 'video_origin_px': [X, Y], got {origin!r}")
+        text = f"{origin[0]},{origin[1]}"
     try:
         x, y = (int(v) for v in text.split(","))
     except ValueError:
-        raise InputError(f"--video-origin {text!r} is not X,Y (two integers)") from None
+        raise InputError(f"--video-origin {text!r} is not X,Y (two integers) or a JSON file") from None
     if x < 0 or y < 0:
         raise InputError(f"--video-origin {text!r} must not be negative")
     return x, y
@@ -179,7 +189,7 @@ def _build_method(name: str, params: dict[str, Any]) -> Any:
 
 def cmd_methods(args: argparse.Namespace) -> int:
     width = max(len(n) for n in registry.available())
-    kinds = {n: registry._REGISTRY[n].kind for n in registry.available()}
+    kinds = registry.kinds()
     for name, summary in registry.describe().items():
         print(f"{name:<{width}}  [{kinds[name]}]  {summary}")
     import cv2
@@ -559,7 +569,8 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--calibration", help="calibration JSON from `refflow calibrate`: frames are undistorted, "
                    "and the mask/--rect/--polygon/--between drawn on raw frames are carried along")
     p.add_argument("--video-origin", metavar="X,Y", help="the video is a window of the calibrated sensor "
-                   "whose top-left pixel is sensor pixel X,Y (a cropped recording)")
+                   "whose top-left pixel is sensor pixel X,Y (a cropped recording); or a JSON file "
+                   "holding 'video_origin_px': [X, Y]")
     p.add_argument("--mask", help="binary mask PNG (full-frame or ROI size, raw video pixels), white = POI")
     p.add_argument("--rect", help="POIs in rectangle X,Y,W,H (raw full-frame pixels)")
     p.add_argument("--polygon", help="POIs in polygon X1,Y1,X2,Y2,... (raw full-frame pixels)")

@@ -117,6 +117,13 @@ def describe() -> dict[str, str]:
     return {name: _REGISTRY[name].summary for name in sorted(_REGISTRY)}
 
 
+def kinds() -> dict[str, str]:
+    """``{name: kind}`` of all registered methods: ``"dense"`` (a flow field against the
+    reference frame, frames independent) or ``"sparse"`` (features followed frame to frame)."""
+    _load_builtin_methods()
+    return {name: _REGISTRY[name].kind for name in sorted(_REGISTRY)}
+
+
 def get_method(name: str, **params: Any) -> Any:
     """Instantiate the method registered as ``name`` with keyword parameters."""
     _load_builtin_methods()

@@ -547,8 +547,9 @@ def render_clip(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path,
         spent = {"meter_s": 0.0, "truth_s": 0.0}
         frame_times = []
         outputs = (video, out_dir / "mask.png", out_dir / "background.png", out_dir / "scale.json",
-                   out_dir / "poi_truth.npz", out_dir / "truth.csv")
-        with atomic_paths(*outputs) as (tmp_video, tmp_mask, tmp_background, tmp_scale, tmp_npz, tmp_csv):
+                   out_dir / "recording.json", out_dir / "poi_truth.npz", out_dir / "truth.csv")
+        with atomic_paths(*outputs) as (tmp_video, tmp_mask, tmp_background, tmp_scale, tmp_recording,
+                                        tmp_npz, tmp_csv):
             with VideoWriter(tmp_video, w.width, w.height, r.cam_cfg.fps, codec) as writer, \
                     TruthWriter(tmp_csv, tmp_npz, poi_x_px=r.poi_window_px[:, 0],
                                 poi_y_px=r.poi_window_px[:, 1]) as truth_out:
@@ -574,6 +575,11 @@ def render_clip(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path,
                 "between_px": [round(float(v), 4) for v in r.scale_points()],
                 "what": "the beam's front-face edges at the measurement height on frame 0 (raw video "
                         "pixels, exact); their distance is the beam thickness"}))
+            # what the recording itself tells: the video is this window of the sensor
+            # (refflow track --video-origin reads it to use the full-sensor calibration)
+            tmp_recording.write_text(json_text({
+                "video_origin_px": [w.x, w.y], "video_size_px": [w.width, w.height],
+                "sensor_size_px": [r.camera.width, r.camera.height], "fps": r.cam_cfg.fps}))
         meta = r.metadata()
         ft = np.array(frame_times) if frame_times else np.zeros(1)
         meta.update({

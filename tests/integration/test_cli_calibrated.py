@@ -107,7 +107,9 @@ def test_cropped_recording_uses_the_full_sensor_calibration(lens_clip, tmp_path)
     whole, cropped = tmp_path / "whole.csv", tmp_path / "cropped.csv"
     assert main(["track", str(lens_clip["frames"]), "--roi", f"{x0},{y0},{w},{h}", "--rect", "10,8,106,78",
                  "--between", lens_clip["between"], *common, "--out", str(whole)]) == 0
-    assert main(["track", str(crops), "--video-origin", f"{x0},{y0}", "--rect", f"{10 - x0},{8 - y0},106,78",
+    recording = tmp_path / "recording.json"
+    recording.write_text(json.dumps({"video_origin_px": [x0, y0]}))
+    assert main(["track", str(crops), "--video-origin", str(recording), "--rect", f"{10 - x0},{8 - y0},106,78",
                  "--between", f"{x1 - x0},{y1 - y0},{x2 - x0},{y2 - y0}", *common, "--out", str(cropped)]) == 0
     a, b = (list(csv.DictReader(p.open())) for p in (whole, cropped))
     for key in ("dx_px", "dy_px", "dx_mm"):

@@ -183,7 +183,7 @@ def test_same_input_gives_the_same_bytes():
 
 def test_registry_and_parameters():
     # Importing the module registers both names (flow.methods imports it too).
-    assert {"deepflow", "deepmatching"} <= set(registry._REGISTRY)
+    assert {"deepflow", "deepmatching"} <= set(registry.available())
     method = deepflow_module.DeepFlow(preset="fast", alpha=1.5)
     params = method.params()
     assert params["alpha"] == 1.5 and params["eta"] == 0.8 and params["preset"] == "fast"

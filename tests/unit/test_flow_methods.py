@@ -15,7 +15,7 @@ from flow.track import measure, track_dense, track_sparse
 # integer grid of atomic patches (interpolated between them), so 0.05 px on a 0.1 px shift is
 # not what it is built for; its accuracy is covered in tests/unit/test_deepmatching.py.
 OTHER_TESTS = {"deepflow", "deepmatching"}
-REFERENCE_FRAME_METHODS = [n for n in registry.available() if registry._REGISTRY[n].kind == "dense"]
+REFERENCE_FRAME_METHODS = [n for n, kind in registry.kinds().items() if kind == "dense"]
 DENSE = [n for n in REFERENCE_FRAME_METHODS if n not in OTHER_TESTS]
 # Parameters that keep the slow methods to a second or two on the 40-frame drift sequence
 # (tvl1 at its defaults takes ~2 minutes there); accuracy stays well inside the bound.
@@ -44,7 +44,7 @@ def test_registry_lists_dense_and_sparse_methods() -> None:
     for name in ("deepflow-opencv", "dis", "farneback", "klt", "klt-ref"):
         assert name in names
     assert all(registry.describe()[n] for n in names)
-    assert registry._REGISTRY["klt"].kind == "sparse"
+    assert registry.kinds()["klt"] == "sparse" and registry.kinds()["dis"] == "dense"
 
 
 @pytest.mark.parametrize("name", DENSE)

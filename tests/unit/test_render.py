@@ -687,7 +687,8 @@ def test_render_clip_writes_documented_files_streamed(shapes, tmp_path):
     cfg = {**_small_config(shake=True), "codec": {"name": "ffv1"}}
     meta = render_clip(cfg, shapes, tmp_path, max_frames=4, progress=False)
     assert {p.name for p in tmp_path.iterdir()} == {"video.mkv", "mask.png", "background.png", "scale.json",
-                                                     "truth.csv", "poi_truth.npz", "render.json"}
+                                                     "recording.json", "truth.csv", "poi_truth.npz",
+                                                     "render.json"}
     with (tmp_path / "truth.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0]) == ["frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "occluded",
@@ -709,6 +710,8 @@ def test_render_clip_writes_documented_files_streamed(shapes, tmp_path):
     assert scale["known_length_mm"] == 5.0
     assert x1 < poi_cols.min() and x2 > poi_cols.max() and abs(y2 - y1) < 0.01
     assert (x2 - x1) == pytest.approx(5.0 / meta["mm_per_px"], rel=0.01)
+    recording = json.loads((tmp_path / "recording.json").read_text())
+    assert recording["video_origin_px"] == [meta["crop"]["x"], meta["crop"]["y"]]
     r = BeamRenderer(cfg, shapes)
     try:
         raw = r.frame(0, r.gains(1)[0])
