@@ -13,7 +13,7 @@ export MPLBACKEND ?= Agg
 .PHONY: all test lint bench clean-results
 
 all: $(STAMP)
-	$(BIN)/snakemake --cores $(CORES) all
+	$(BIN)/snakemake --cores $(CORES) --rerun-incomplete all
 
 test: $(STAMP)
 	$(BIN)/python -m pytest

@@ -4,7 +4,7 @@ Usage::
 
     python -m sim.render_cli --config CONFIG --shapes SHAPES.npz --out-dir DIR \
         [--full-frame] [--max-frames N] [--no-progress]
-    python -m sim.render_cli calibration --config CONFIG --out-dir DIR [--n-images 15]
+    python -m sim.render_cli calibration --config CONFIG --out-dir DIR [--n-images 15] [--board 9x6] [--square-mm 40]
     python -m sim.render_cli figures --config CONFIG [--shapes SHAPES.npz] [--out-dir results/figures]
     python -m sim.render_cli synthetic-shapes --out SHAPES.npz [--duration-s 2]
 
@@ -47,6 +47,8 @@ def _parser() -> argparse.ArgumentParser:
     cal.add_argument("--config")
     cal.add_argument("--out-dir", required=True)
     cal.add_argument("--n-images", type=int, default=15)
+    cal.add_argument("--board", default="9x6", help="inner corners COLSxROWS (as refflow calibrate --board)")
+    cal.add_argument("--square-mm", type=float, default=40.0, help="square side in mm")
     cal.add_argument("--no-progress", action="store_true")
     fig = sub.add_parser("figures", help="render_full/crop/occluded PNGs (and render_occluding.png)")
     fig.add_argument("--config")
@@ -72,8 +74,14 @@ def main(argv: list[str] | None = None) -> int:
         config = _load_config(args.config)
         if args.command == "calibration":
             from sim.render import render_calibration
-            meta = render_calibration(config, args.out_dir, n_images=args.n_images,
-                                      progress=not args.no_progress)
+            try:
+                cols, rows = (int(v) for v in args.board.lower().split("x"))
+            except ValueError:
+                raise ValueError(f"--board {args.board!r} is not COLSxROWS, e.g. 9x6") from None
+            if cols < 2 or rows < 2 or not args.square_mm > 0:
+                raise ValueError(f"--board {args.board!r} needs >= 2x2 inner corners and --square-mm > 0")
+            meta = render_calibration(config, args.out_dir, n_images=args.n_images, cols=cols, rows=rows,
+                                      square_mm=args.square_mm, progress=not args.no_progress)
             print(f"{len(meta['images'])} images in {args.out_dir}")
             return 0
         if args.command == "figures":

@@ -8,6 +8,7 @@ gate table when a gate of config/gates.yaml is missed.
 from __future__ import annotations
 
 import csv
+import json
 import os
 import subprocess
 import sys
@@ -31,6 +32,16 @@ def workbench(tmp_path_factory) -> Path:
         logs = "\n".join(f"--- {p}\n{p.read_text()[-2000:]}" for p in sorted(results.rglob("*.log")))
         pytest.fail(f"snakemake failed ({run.returncode}):\n{run.stderr[-4000:]}\n{logs}")
     return results
+
+
+def test_dense_runs_were_split_into_frame_ranges_and_merged(workbench):
+    # ci.yaml: 100-frame jobs; the 3 s ambient clip has 180 frames -> 2 parts
+    sidecar = json.loads((workbench / "ambient/track/deepflow.json").read_text())
+    assert [p["frames"] for p in sidecar["parts"]] == [[0, 100], [100, 180]]
+    # the tool was given what a user has: a calibration, the video's place on the sensor,
+    # and the beam's edges as the scale reference
+    assert sidecar["calibration"]["video_origin"] != [0, 0]
+    assert "known length 5.0 mm" in sidecar["scale"]["source"]
 
 
 def test_summary_has_every_scenario_and_method(workbench):
@@ -63,7 +74,7 @@ def _dry_run(config_path: Path, results: Path) -> str:
                           "--config", f"results_dir={results}", "-n"],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
-    return run.stdout
+    return run.stdout + run.stderr
 
 
 def test_changing_one_scenario_reruns_only_that_scenario(workbench, tmp_path):
@@ -105,5 +116,43 @@ def test_changing_a_tracking_parameter_reruns_only_tracking(workbench, tmp_path)
     assert run.returncode == 0, run.stderr
     jobs = {line.split()[0] for line in run.stdout.splitlines()
             if line[:1].isalpha() and len(line.split()) == 2 and line.split()[1].isdigit()}
-    assert "track" in jobs, run.stdout
-    assert not jobs & {"simulate", "render", "modes"}, f"re-ran upstream stages: {sorted(jobs)}"
+    assert "track_part" in jobs and "merge_track" in jobs, run.stdout
+    assert not jobs & {"simulate", "render", "modes", "calibrate"}, f"re-ran upstream stages: {sorted(jobs)}"
+
+
+def test_interrupted_run_resumes(workbench):
+    """Ctrl-C in the middle of a tracking job, then the same command again: it finishes
+    what was left and nothing else, with no half-written file in between."""
+    import signal
+    import time
+
+    target = workbench / "occlusion/track/deepflow.csv"
+    # as in a first run that was stopped: the measurement and everything after it are not there yet
+    for name in ("occlusion/track/deepflow.csv", "occlusion/track/deepflow.json",
+                 "occlusion/metrics/deepflow.json", "summary.csv", "summary.md", "table1.md",
+                 "table1.csv", "timings.md"):
+        (workbench / name).unlink()
+    env = {**os.environ, "PYOPENGL_PLATFORM": "egl", "MPLBACKEND": "Agg",
+           "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
+    cmd = [str(BIN / "snakemake"), "--cores", "2", "--configfile", "config/ci.yaml",
+           "--config", f"results_dir={workbench}", "--rerun-incomplete"]
+    part_log = workbench / "occlusion/logs/track_deepflow.0.log"
+    started = part_log.stat().st_mtime if part_log.exists() else 0.0
+    run = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                           text=True, start_new_session=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and run.poll() is None:
+        if part_log.exists() and part_log.stat().st_mtime > started:
+            break
+        time.sleep(0.2)
+    time.sleep(1.0)
+    assert run.poll() is None, "the run ended before it could be interrupted"
+    os.killpg(run.pid, signal.SIGINT)  # what Ctrl-C at a terminal sends
+    out, _ = run.communicate(timeout=120)
+    assert run.returncode != 0, out[-2000:]
+    assert not target.exists()
+    assert not list(workbench.glob("occlusion/track/parts/*.npz.*")), "a half-written part was left"
+    again = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert target.exists()
+    assert "Nothing to be done" in _dry_run(ROOT / "config/ci.yaml", workbench)

@@ -41,15 +41,100 @@ def scenario_methods(scenario):
     return scenario_config(scenario).get("methods", METHODS)
 
 
-def track_args(wildcards):
-    """`refflow track` options from the scenario's `track` section."""
-    cfg = scenario_config(wildcards.scenario).get("track", {})
+# The calibration board of `python -m sim render calibration` and `refflow calibrate`.
+CALIBRATION_BOARD = "9x6"
+CALIBRATION_SQUARE_MM = 40.0
+
+
+def track_config(scenario):
+    return scenario_config(scenario).get("track", {})
+
+
+def _options(cfg, keys):
+    return [f"--{key.replace('_', '-')} {cfg[key]}" for key in keys if key in cfg]
+
+
+def measure_args(wildcards):
+    """`refflow track` options that decide what is measured in each frame."""
+    cfg = track_config(wildcards.scenario)
     params = cfg.get("methods", {}).get(wildcards.method, {})
     args = [f"--param {key}={value}" for key, value in sorted(params.items())]
-    for key in ("filter", "threshold_ratio", "mcr_threshold", "grid_step", "reference_frame"):
-        if key in cfg:
-            args.append(f"--{key.replace('_', '-')} {cfg[key]}")
+    return " ".join(args + _options(cfg, ("grid_step", "reference_frame")))
+
+
+def filter_args(wildcards):
+    """Options of the paper's filtering and averaging (eq. 10-12), given to track or merge."""
+    return " ".join(_options(track_config(wildcards.scenario), ("filter", "threshold_ratio", "mcr_threshold")))
+
+
+def uses_calibration(scenario):
+    return bool(track_config(scenario).get("calibrate", True))
+
+
+def track_inputs(wildcards):
+    """What the tool is given, like a user: the video, the masks, the clicked scale points,
+    the recording's place on the sensor and (by default) the calibration."""
+    render = f"{RESULTS}/{wildcards.scenario}/render"
+    inputs = {"video": f"{render}/video.mp4", "mask": f"{render}/mask.png",
+              "background": f"{render}/background.png", "scale": f"{render}/scale.json",
+              "recording": f"{render}/recording.json"}
+    if uses_calibration(wildcards.scenario):
+        inputs["calibration"] = f"{RESULTS}/{wildcards.scenario}/calibration/calibration.json"
+    return inputs
+
+
+def setup_args(wildcards, input):
+    """--calibration and --background-mask, as the scenario asks."""
+    args = []
+    if "calibration" in input.keys():
+        args.append(f"--calibration {input.calibration} --video-origin {input.recording}")
+    if track_config(wildcards.scenario).get("background_compensation", False):
+        args.append(f"--background-mask {input.background}")
     return " ".join(args)
+
+
+def method_kind(method):
+    # Imported on use: only the track rules need the registry.
+    from flow.registry import kinds
+
+    known = kinds()
+    if method not in known:
+        raise ValueError(f"config lists method {method!r}, not registered: {', '.join(known)}")
+    return known[method]
+
+
+def methods_of_kind(kind):
+    """Regex of the configured methods of one kind (a wildcard constraint of the track rules)."""
+    used = sorted({m for s in SCENARIOS for m in scenario_methods(s)})
+    return "|".join(re.escape(m) for m in used if method_kind(m) == kind) or "^$"
+
+
+def frame_count(scenario):
+    """Frames the render writes (sim.render: floor(duration_s * fps))."""
+    cfg = scenario_config(scenario)
+    return int(float(cfg["duration_s"]) * float(cfg.get("camera", {}).get("fps", 60.0)) + 1e-9)
+
+
+def track_part_count(scenario):
+    """Frame ranges a dense method's run is split into (`track.chunk_frames`; 0: one)."""
+    chunk = int(track_config(scenario).get("chunk_frames", 0) or 0)
+    return 1 if chunk <= 0 else max(1, round(frame_count(scenario) / chunk))
+
+
+def part_frames(wildcards):
+    """`--frames START:END` of one part; the last part runs to the end of the video."""
+    part, parts = int(wildcards.part), track_part_count(wildcards.scenario)
+    chunk = int(track_config(wildcards.scenario).get("chunk_frames", 0) or 0)
+    start = part * chunk if parts > 1 else 0
+    stop = "" if part == parts - 1 else (part + 1) * chunk
+    return f"{start}:{stop}"
+
+
+def track_parts(wildcards):
+    return [
+        f"{RESULTS}/{wildcards.scenario}/track/parts/{wildcards.method}.{part}.npz"
+        for part in range(track_part_count(wildcards.scenario))
+    ]
 
 
 def metrics_files():

@@ -8,6 +8,9 @@ rule render:
     output:
         video=f"{RESULTS}/{{scenario}}/render/video.mp4",
         mask=f"{RESULTS}/{{scenario}}/render/mask.png",
+        background=f"{RESULTS}/{{scenario}}/render/background.png",
+        scale=f"{RESULTS}/{{scenario}}/render/scale.json",
+        recording=f"{RESULTS}/{{scenario}}/render/recording.json",
         truth=f"{RESULTS}/{{scenario}}/render/truth.csv",
         poi_truth=f"{RESULTS}/{{scenario}}/render/poi_truth.npz",
         sidecar=f"{RESULTS}/{{scenario}}/render/render.json",
@@ -21,7 +24,7 @@ rule render:
         f"{RESULTS}/{{scenario}}/benchmarks/render.tsv"
     shell:
         "python -m sim render --config {input.config} --shapes {input.shapes}"
-        " --out-dir {params.out_dir} > {log} 2>&1"
+        " --out-dir {params.out_dir} --no-progress > {log} 2>&1"
 
 
 rule calibration_set:
@@ -29,6 +32,9 @@ rule calibration_set:
         stage_config("render"),
     output:
         directory(f"{RESULTS}/{{scenario}}/calibration/images"),
+    params:
+        board=CALIBRATION_BOARD,
+        square_mm=CALIBRATION_SQUARE_MM,
     conda:
         "../envs/refflow.yaml"
     benchmark:
@@ -36,7 +42,8 @@ rule calibration_set:
     log:
         f"{RESULTS}/{{scenario}}/logs/calibration_set.log",
     shell:
-        "python -m sim render calibration --config {input} --out-dir {output} > {log} 2>&1"
+        "python -m sim render calibration --config {input} --board {params.board}"
+        " --square-mm {params.square_mm} --out-dir {output} --no-progress > {log} 2>&1"
 
 
 rule calibrate:
@@ -45,8 +52,8 @@ rule calibrate:
     output:
         f"{RESULTS}/{{scenario}}/calibration/calibration.json",
     params:
-        board=lookup(dpath="calibration/board", within=config, default="9x6"),
-        square_mm=lookup(dpath="calibration/square_mm", within=config, default=25),
+        board=CALIBRATION_BOARD,
+        square_mm=CALIBRATION_SQUARE_MM,
     conda:
         "../envs/refflow.yaml"
     benchmark:

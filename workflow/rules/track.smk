@@ -1,17 +1,68 @@
 # Stage 3: the measurement tool on the rendered video, once per method, like a user would.
+# Reference-frame (dense) methods measure every frame on its own: their runs are split into
+# frame ranges (`track.chunk_frames`) that run as separate jobs, then merged. KLT follows its
+# features from frame to frame and runs as one job.
+
+
+rule track_part:
+    input:
+        unpack(track_inputs),
+    output:
+        temp(f"{RESULTS}/{{scenario}}/track/parts/{{method}}.{{part}}.npz"),
+    wildcard_constraints:
+        method=methods_of_kind("dense"),
+        part=r"\d+",
+    params:
+        frames=part_frames,
+        measure=measure_args,
+        setup=setup_args,
+    threads: 2
+    conda:
+        "../envs/refflow.yaml"
+    log:
+        f"{RESULTS}/{{scenario}}/logs/track_{{method}}.{{part}}.log",
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/track_part_{{method}}.{{part}}.tsv"
+    shell:
+        "refflow track {input.video} --mask {input.mask} --method {wildcards.method}"
+        " {params.measure} {params.setup} --frames {params.frames} --jobs {threads}"
+        " --raw-tracks {output} --no-progress > {log} 2>&1"
+
+
+rule merge_track:
+    input:
+        parts=track_parts,
+        scale=f"{RESULTS}/{{scenario}}/render/scale.json",
+    output:
+        csv=f"{RESULTS}/{{scenario}}/track/{{method}}.csv",
+        sidecar=f"{RESULTS}/{{scenario}}/track/{{method}}.json",
+    wildcard_constraints:
+        method=methods_of_kind("dense"),
+    params:
+        filters=filter_args,
+    conda:
+        "../envs/refflow.yaml"
+    log:
+        f"{RESULTS}/{{scenario}}/logs/track_{{method}}.log",
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/merge_track_{{method}}.tsv"
+    shell:
+        "refflow merge {input.parts} --scale-file {input.scale} {params.filters}"
+        " --out {output.csv} > {log} 2>&1"
 
 
 rule track:
     input:
-        video=f"{RESULTS}/{{scenario}}/render/video.mp4",
-        mask=f"{RESULTS}/{{scenario}}/render/mask.png",
-        scale=f"{RESULTS}/{{scenario}}/render/render.json",
+        unpack(track_inputs),
     output:
         csv=f"{RESULTS}/{{scenario}}/track/{{method}}.csv",
         sidecar=f"{RESULTS}/{{scenario}}/track/{{method}}.json",
+    wildcard_constraints:
+        method=methods_of_kind("sparse"),
     params:
-        options=track_args,
-    threads: 2
+        measure=measure_args,
+        setup=setup_args,
+        filters=filter_args,
     conda:
         "../envs/refflow.yaml"
     log:
@@ -20,5 +71,5 @@ rule track:
         f"{RESULTS}/{{scenario}}/benchmarks/track_{{method}}.tsv"
     shell:
         "refflow track {input.video} --mask {input.mask} --method {wildcards.method}"
-        " --scale-file {input.scale} {params.options} --jobs {threads}"
+        " {params.measure} {params.setup} --scale-file {input.scale} {params.filters}"
         " --out {output.csv} --no-progress > {log} 2>&1"
