@@ -417,11 +417,13 @@ def cmd_track(args: argparse.Namespace) -> int:
         warnings.simplefilter("always")
         if sparse:
             tracks = track.track_sparse(source, method, mask, reference_frame=args.reference_frame,
+                                        reference_average=args.reference_average,
                                         max_frames=args.max_frames, undistort=undistort,
                                         progress=not args.no_progress, store_dir=store_dir)
         else:
             tracks = track.track_dense(source, lambda: _build_method(name, params), poi_xy,
-                                       reference_frame=args.reference_frame, jobs=args.jobs,
+                                       reference_frame=args.reference_frame,
+                                       reference_average=args.reference_average, jobs=args.jobs,
                                        max_frames=args.max_frames, frames=frames, undistort=undistort,
                                        progress=not args.no_progress, store_dir=store_dir,
                                        background=background)
@@ -445,12 +447,14 @@ def cmd_track(args: argparse.Namespace) -> int:
                   "frames_measured": len(tracks.frame), "truncated": tracks.truncated},
         "frames": {"first": int(tracks.frame[0]), "stop": int(tracks.frame[-1]) + 1, "requested": args.frames},
         "method": name, "method_kind": "sparse" if sparse else "dense", "parameters": method.params(),
-        "reference_frame": args.reference_frame, "jobs": args.jobs if not sparse else 1,
+        "reference_frame": args.reference_frame, "reference_average": args.reference_average,
+        "jobs": args.jobs if not sparse else 1,
         "roi": roi.as_dict(), "calibration": calibration_info, "poi": poi_info,
         "background": background_info,
         "timings": tracks.timings_s,
         # What every part of one run shares; `refflow merge` refuses parts that differ.
         "identity": {"method": name, "parameters": method.params(), "reference_frame": args.reference_frame,
+                     "reference_average": args.reference_average,
                      "reference_digest": tracks.reference_digest, "roi": roi.as_dict(),
                      "frame_size": list(source.size), "header_frames": tracks.header_frames,
                      "calibration": calibration_info, "poi": poi_info, "background": background_info},
@@ -524,7 +528,7 @@ def cmd_pois(args: argparse.Namespace) -> int:
     undistort, _ = _undistorter(args, source)
     mask = _mask_for(args, source, undistort)
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
-    reference = read_reference(source, args.reference_frame, undistort)
+    reference = read_reference(source, args.reference_frame, undistort, args.reference_average)
     corners = KLT(detector=args.detector).detect(reference)
     poi_figure(reference, poi_xy, corners, args.out)
     cells = np.round(corners).astype(int).reshape(-1, 2)
@@ -576,7 +580,10 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--polygon", help="POIs in polygon X1,Y1,X2,Y2,... (raw full-frame pixels)")
     p.add_argument("--grid-step", type=int, default=1, help="keep every N-th mask pixel in x and y")
     p.add_argument("--reference-frame", type=int, default=0, help="index of the fixed reference frame")
-
+    p.add_argument("--reference-average", type=int, default=1, metavar="N",
+                   help="the reference is the mean of N frames from --reference-frame, taken while the "
+                        "structure is at rest (a key frame of a compressed video reads as a sub-pixel "
+                        "shift against the frames that follow it; default 1: the frame itself)")
 
 def _add_measure_options(p: argparse.ArgumentParser, *, out_required: bool) -> None:
     p.add_argument("--out", required=out_required,

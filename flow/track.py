@@ -238,15 +238,36 @@ def _stop(max_frames: int | None, frames: tuple[int, int | None] | None) -> tupl
     return start, stop
 
 
-def read_reference(source: FrameSource, reference_frame: int, undistort: Undistort = None) -> np.ndarray:
-    """Grey (undistorted) ROI of frame ``reference_frame``."""
+def read_reference(source: FrameSource, reference_frame: int, undistort: Undistort = None,
+                   average: int = 1) -> np.ndarray:
+    """Grey (undistorted) ROI of frame ``reference_frame``, or the mean of ``average``
+    frames from it (rounded to the frames' dtype).
+
+    Why average: a phone video starts with a key frame (I-frame); the codec rebuilds
+    low-texture surfaces a little differently in the predicted frames that follow, and a
+    reference-frame method reads that as a sub-pixel shift (0.1-0.7 px on the simulated
+    wall and beam). The mean of the frames while the structure is at rest is a
+    reference like the frames it is compared with, and less noisy.
+    """
     if reference_frame < 0:
         raise InputError(f"--reference-frame {reference_frame} is negative: pass a frame index >= 0")
-    for index, _, grey in _frames(source, reference_frame, reference_frame + 1, undistort):
-        if index == reference_frame:
-            return grey
-    raise InputError(f"--reference-frame {reference_frame} is beyond the {source.frames_read} "
-                     "decodable frames: pick an earlier frame")
+    if average < 1:
+        raise InputError(f"--reference-average {average} must be >= 1")
+    total, count, dtype = None, 0, None
+    for _, _, grey in _frames(source, reference_frame, reference_frame + average, undistort):
+        total = grey.astype(np.float64) if total is None else total + grey
+        count, dtype = count + 1, grey.dtype
+    if count == 0:
+        raise InputError(f"--reference-frame {reference_frame} is beyond the {source.frames_read} "
+                         "decodable frames: pick an earlier frame")
+    if count < average:
+        raise InputError(f"--reference-average {average} needs frames {reference_frame}.."
+                         f"{reference_frame + average - 1}, the video ends after {count} of them: "
+                         "average fewer frames")
+    if average == 1:
+        return total.astype(dtype)
+    mean = total / count
+    return np.rint(mean).astype(dtype) if np.issubdtype(dtype, np.integer) else mean.astype(dtype)
 
 
 def _progress(source: FrameSource, start: int, stop: int | None, show: bool) -> tqdm:
@@ -277,7 +298,8 @@ def _no_frames(source: FrameSource, start: int, stop: int | None) -> InputError:
 
 
 def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndarray, *,
-                reference_frame: int = 0, jobs: int = 1, max_frames: int | None = None,
+                reference_frame: int = 0, reference_average: int = 1, jobs: int = 1,
+                max_frames: int | None = None,
                 frames: tuple[int, int | None] | None = None, undistort: Undistort = None,
                 progress: bool = False, store_dir: str | Path | None = None,
                 background: Background | None = None) -> Tracks:
@@ -295,6 +317,10 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     reference_frame : int
         Index of the fixed reference frame; it is read from the video even when
         it lies outside ``frames``.
+    reference_average : int
+        The reference is the mean of this many frames from ``reference_frame``
+        (see :func:`read_reference`); its offset (eq. 10) is then the method's
+        output for the reference against itself.
     frames : (start, stop), optional
         Measure frames ``start <= index < stop`` only (``stop`` None: to the end).
     max_frames : int, optional
@@ -310,7 +336,7 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         raise InputError(f"--jobs {jobs} must be >= 1")
     start, stop = _stop(max_frames, frames)
     t0 = time.perf_counter()
-    reference = read_reference(source, reference_frame, undistort)
+    reference = read_reference(source, reference_frame, undistort, reference_average)
     columns, rows_ = poi_xy[:, 0], poi_xy[:, 1]
     xs = columns.astype(np.float32)
     ys = rows_.astype(np.float32)
@@ -346,9 +372,10 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
 
     in_range = start <= reference_frame and (stop is None or reference_frame < stop)
     offset = None
-    if not in_range:
-        # The range lacks the reference frame: measure it against itself, as the frame's own
-        # row would have been, so the offset removed is the same as in a whole run.
+    if not in_range or reference_average > 1:
+        # The range lacks the reference frame (or the reference is no frame of the video but
+        # a mean of frames): measure it against itself, as the frame's own row would have
+        # been, so the offset removed is the same in a whole run and in its parts.
         method = idle.get()
         flow = method.calc(reference, reference)
         idle.put(method)
@@ -415,7 +442,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
 
 
 def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
-                 reference_frame: int = 0, max_frames: int | None = None, undistort: Undistort = None,
+                 reference_frame: int = 0, reference_average: int = 1, max_frames: int | None = None,
+                 undistort: Undistort = None,
                  progress: bool = False, store_dir: str | Path | None = None) -> Tracks:
     """Run a sparse method: detect features in the reference, follow them frame by frame.
 
@@ -424,7 +452,7 @@ def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
     features are followed from frame to frame.
     """
     t0 = time.perf_counter()
-    reference = read_reference(source, reference_frame, undistort)
+    reference = read_reference(source, reference_frame, undistort, reference_average)
     points = method.start(reference, mask)
     if len(points) == 0:
         raise InputError("no corner feature found in the ROI of the reference frame: "

@@ -510,3 +510,40 @@ def test_outputs_sharing_a_name_are_refused_before_tracking(clip, tmp_path, caps
                  "--raw-tracks", str(same), "--no-progress"]) == 2
     assert "two outputs share a name" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_reference_average_of_frames_at_rest(tmp_path) -> None:
+    """A key frame that differs from the frames after it (as a codec's first I-frame does)
+    biases every measurement against it; a reference averaged over the frames at rest does not."""
+    video = tmp_path / "keyframe.mkv"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (W, H), True)
+    rest, truth = 10, np.r_[np.zeros(10), 1.2 * np.sin(np.linspace(0, 3 * np.pi, 20))]
+    for i, shift in enumerate(truth):
+        # frame 0 is rebuilt a little to the left of the frames that follow it
+        image = texture(shift - (0.4 if i == 0 else 0.0), seed=4)
+        grey = np.clip(np.rint(image), 0, 255).astype(np.uint8)
+        writer.write(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    mask = tmp_path / "mask.png"
+    cv2.imwrite(str(mask), np.pad(np.full((H - 40, W - 40), 255, np.uint8), 20))
+    results = {}
+    for average in (1, rest):
+        out = tmp_path / f"avg{average}.csv"
+        assert main(["track", str(video), "--mask", str(mask), "--method", "dis", "--mm-per-px", "1",
+                     "--reference-average", str(average), "--out", str(out), "--no-progress"]) == 0
+        dx = np.array([float(r["dx_px"]) for r in read_csv(out)])
+        results[average] = float(np.sqrt(np.mean((dx[1:] - truth[1:]) ** 2)))
+        assert json.loads(out.with_suffix(".json").read_text())["reference_average"] == average
+    print(f"RMSE vs truth: frame-0 reference {results[1]:.3f} px, mean of {rest} frames {results[rest]:.3f} px")
+    assert results[1] > 0.3 and results[rest] < 0.06
+    assert main(["track", str(video), "--mask", str(mask), "--method", "dis", "--reference-average", "40",
+                 "--out", str(tmp_path / "bad.csv"), "--no-progress"]) == 2
+    assert not (tmp_path / "bad.csv").exists()
+    # parts measured against the same averaged reference merge to the whole run
+    parts = []
+    for span in ("0:14", "14:"):
+        parts.append(str(tmp_path / f"part{len(parts)}.npz"))
+        assert main(["track", str(video), "--mask", str(mask), "--method", "dis", "--reference-average", str(rest),
+                     "--frames", span, "--raw-tracks", parts[-1], "--no-progress"]) == 0
+    assert main(["merge", *parts, "--mm-per-px", "1", "--out", str(tmp_path / "merged.csv")]) == 0
+    assert (tmp_path / "merged.csv").read_text() == (tmp_path / f"avg{rest}.csv").read_text()

@@ -59,7 +59,7 @@ def measure_args(wildcards):
     cfg = track_config(wildcards.scenario)
     params = cfg.get("methods", {}).get(wildcards.method, {})
     args = [f"--param {key}={value}" for key, value in sorted(params.items())]
-    return " ".join(args + _options(cfg, ("grid_step", "reference_frame")))
+    return " ".join(args + _options(cfg, ("grid_step", "reference_frame", "reference_average")))
 
 
 def filter_args(wildcards):
@@ -84,11 +84,13 @@ def track_inputs(wildcards):
 
 
 def setup_args(wildcards, input):
-    """--calibration and --background-mask, as the scenario asks."""
+    """--calibration and --background-mask, as the scenario asks (the paper's KLT baseline
+    has no camera-motion compensation: only reference-frame methods get the background)."""
     args = []
     if "calibration" in input.keys():
         args.append(f"--calibration {input.calibration} --video-origin {input.recording}")
-    if track_config(wildcards.scenario).get("background_compensation", False):
+    if (track_config(wildcards.scenario).get("background_compensation", False)
+            and method_kind(wildcards.method) == "dense"):
         args.append(f"--background-mask {input.background}")
     return " ".join(args)
 
