@@ -140,12 +140,15 @@ class Workspace:
         return view
 
 
+# Brox et al.'s five-point derivative (1, -8, 0, 8, -1) / 12 as two weights.
+_D1 = np.float32(8.0 / 12.0)
+_D2 = np.float32(1.0 / 12.0)
+
+
 @njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
 def _diff_x_at(s, x, W):
     # Five-point derivative at column x of row s, replicated border.
-    c1 = np.float32(8.0 / 12.0)
-    c2 = np.float32(1.0 / 12.0)
-    return c1 * (s[min(x + 1, W - 1)] - s[max(x - 1, 0)]) - c2 * (
+    return _D1 * (s[min(x + 1, W - 1)] - s[max(x - 1, 0)]) - _D2 * (
         s[min(x + 2, W - 1)] - s[max(x - 2, 0)]
     )
 
@@ -154,13 +157,11 @@ def _diff_x_at(s, x, W):
 def _diff_x(src, dst):
     """Brox et al.'s five-point derivative (1, -8, 0, 8, -1) / 12 along x."""
     H, W = src.shape
-    c1 = np.float32(8.0 / 12.0)
-    c2 = np.float32(1.0 / 12.0)
     for y in range(H):
         s = src[y]
         d = dst[y]
         for x in range(2, W - 2):
-            d[x] = c1 * (s[x + 1] - s[x - 1]) - c2 * (s[x + 2] - s[x - 2])
+            d[x] = _D1 * (s[x + 1] - s[x - 1]) - _D2 * (s[x + 2] - s[x - 2])
         for x in range(min(2, W)):
             d[x] = _diff_x_at(s, x, W)
         for x in range(max(W - 2, 2), W):
@@ -171,8 +172,6 @@ def _diff_x(src, dst):
 def _diff_y(src, dst):
     """Five-point derivative along y, replicated border."""
     H, W = src.shape
-    c1 = np.float32(8.0 / 12.0)
-    c2 = np.float32(1.0 / 12.0)
     for y in range(H):
         m2 = src[max(y - 2, 0)]
         m1 = src[max(y - 1, 0)]
@@ -180,7 +179,7 @@ def _diff_y(src, dst):
         p2 = src[min(y + 2, H - 1)]
         d = dst[y]
         for x in range(W):
-            d[x] = c1 * (p1[x] - m1[x]) - c2 * (p2[x] - m2[x])
+            d[x] = _D1 * (p1[x] - m1[x]) - _D2 * (p2[x] - m2[x])
 
 
 @njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
