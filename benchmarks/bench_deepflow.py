@@ -9,12 +9,22 @@ calls both methods alternately, ``--frames`` times each, after a warm-up
 call (numba compilation or cache load) timed separately: the ratio is that
 of the fastest frames, and the median of the ratios of neighbouring calls is
 printed beside it, as a check that other jobs on the machine did not skew it.
+
+OpenCV's DeepFlow runs its variational part on all cores (``parallel_for_``;
+on a 2-core machine about 1.8x faster than on one), ours on one core per
+frame. So three comparisons are printed: OpenCV as it comes (all cores)
+against ours on one core; both on one core (``cv2.setNumThreads(1)``), the
+per-core cost of the two algorithms; and the throughput of the whole machine
+when every core is busy, as ``refflow track --jobs N`` uses it: ours with one
+frame per core at once, OpenCV both ways (its own threads on one frame at a
+time, and one single-threaded frame per core), the better of the two kept.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -108,7 +118,9 @@ def _worker(method: str, width: int, height: int, frames: int, preset: str = "de
     return result
 
 
-def _interleaved_times(width: int, height: int, frames: int, preset: str) -> dict:
+def _interleaved_times(
+    width: int, height: int, frames: int, preset: str, opencv_threads: int | None = None
+) -> dict:
     """Per-frame times of both methods measured alternately in this process.
 
     Alternating A, B, A, B and keeping each method's fastest frame makes the
@@ -121,6 +133,9 @@ def _interleaved_times(width: int, height: int, frames: int, preset: str) -> dic
     import flow.methods.deepflow as deepflow_module
 
     reference, current = _pair(width, height)
+    threads_before = cv2.getNumThreads()
+    if opencv_threads is not None:
+        cv2.setNumThreads(opencv_threads)
     opencv = cv2.optflow.createOptFlow_DeepFlow()
     ours = deepflow_module.DeepFlow(preset=preset)
     t0 = time.perf_counter()
@@ -135,6 +150,7 @@ def _interleaved_times(width: int, height: int, frames: int, preset: str) -> dic
         t0 = time.perf_counter()
         ours.calc(reference, current)
         times["ours"].append(time.perf_counter() - t0)
+    cv2.setNumThreads(threads_before)
     pairs = sorted(b / a for a, b in zip(times["opencv"], times["ours"], strict=True))
     return {
         "opencv": min(times["opencv"]),
@@ -142,6 +158,47 @@ def _interleaved_times(width: int, height: int, frames: int, preset: str) -> dic
         "median_pair_ratio": pairs[len(pairs) // 2],
         "warmup_s": warmup,
     }
+
+
+def _throughput(
+    method: str, width: int, height: int, frames: int, preset: str, cores: int, opencv_threads: int
+) -> float:
+    """Seconds per frame with ``cores`` frames computed at once (one thread each).
+
+    Every thread has its own engine and computes ``frames`` frames; the time
+    is that of the whole batch over the number of frames, best of two batches.
+    """
+    sys.path.insert(0, str(ROOT))
+    from concurrent.futures import ThreadPoolExecutor
+
+    import cv2
+
+    import flow.methods.deepflow as deepflow_module
+
+    reference, current = _pair(width, height)
+    threads_before = cv2.getNumThreads()
+    cv2.setNumThreads(opencv_threads)
+    if method == "opencv":
+        engines = [cv2.optflow.createOptFlow_DeepFlow() for _ in range(cores)]
+        calls = [lambda e=e: e.calc(reference, current, None) for e in engines]
+    else:
+        engines = [deepflow_module.DeepFlow(preset=preset) for _ in range(cores)]
+        calls = [lambda e=e: e.calc(reference, current) for e in engines]
+    for call in calls:  # warm-up (numba cache load, buffers)
+        call()
+
+    def run(call):
+        for _ in range(frames):
+            call()
+
+    best = float("inf")
+    with ThreadPoolExecutor(max_workers=cores) as pool:
+        for _ in range(2):
+            t0 = time.perf_counter()
+            list(pool.map(run, calls))
+            best = min(best, (time.perf_counter() - t0) / (frames * cores))
+    cv2.setNumThreads(threads_before)
+    return best
 
 
 def main() -> None:
@@ -201,6 +258,26 @@ def main() -> None:
             f"{both['median_pair_ratio']:.2f}); peak memory ratio = "
             f"{ours['peak_mb'] / cv['peak_mb']:.2f}"
         )
+        one = _interleaved_times(width, height, args.frames, args.preset, opencv_threads=1)
+        print(
+            f"{width}x{height}: both on one core: OpenCV {one['opencv']:.3f} s/frame, "
+            f"ours {one['ours']:.3f} s/frame, ratio ours/OpenCV = "
+            f"{one['ours'] / one['opencv']:.2f} (median of neighbouring calls "
+            f"{one['median_pair_ratio']:.2f})"
+        )
+        cores = os.cpu_count() or 1
+        if cores > 1:
+            batch = max(2, args.frames // 2)
+            ours_t = _throughput("ours", width, height, batch, args.preset, cores, 1)
+            cv_own = _throughput("opencv", width, height, batch, args.preset, 1, cores)
+            cv_par = _throughput("opencv", width, height, batch, args.preset, cores, 1)
+            cv_best = min(cv_own, cv_par)
+            print(
+                f"{width}x{height}: all {cores} cores busy: ours {ours_t:.3f} s/frame "
+                f"({cores} frames at once); OpenCV {cv_own:.3f} s/frame on its own threads, "
+                f"{cv_par:.3f} s/frame with {cores} frames at once; ratio ours/OpenCV's "
+                f"better = {ours_t / cv_best:.2f}"
+            )
 
 
 if __name__ == "__main__":
