@@ -71,7 +71,6 @@ def test_tacoma_deck_twisting_deepflow_and_klt_agree(tmp_path, capsys) -> None:
     assert figure.is_file()
 
 
-@pytest.mark.slow
 @needs_clip
 def test_tacoma_script_writes_the_figures(tmp_path) -> None:
     env = {**os.environ, "TACOMA_CLIP": str(CLIP)}

@@ -1,4 +1,4 @@
-"""Slow end-to-end checks of the renderer on the real 4K geometry (`pytest -m slow`)."""
+"""End-to-end checks of the renderer on the real 4K geometry (about 50 s in all)."""
 
 from __future__ import annotations
 
@@ -6,9 +6,6 @@ import csv
 import json
 
 import numpy as np
-import pytest
-
-pytestmark = pytest.mark.slow
 
 
 def test_cli_renders_h264_clip_with_occlusion(tmp_path):
