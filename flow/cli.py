@@ -29,6 +29,7 @@ from refflow.io import atomic_paths, json_text, versions, write_json
 
 EXIT_USAGE = 2
 CSV_COLUMNS = ("frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "valid",
+               "sigma_dx_px", "sigma_dy_px", "sigma_px",
                "poi_kept_frac", "residual", "flow_spread_px", "camera_dx_px", "camera_dy_px")
 
 
@@ -325,6 +326,10 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
                         "consistency_band_px": _finite_or_none(result.consistency_band_px)},
             "units": {"time_s": "s", "dx_px": "px, + = image right", "dy_px": "px, + = image down",
                       "dx_mm": "mm", "dy_mm": "mm", "residual": "grey levels (0-255)",
+                      "sigma_dx_px": "px, standard uncertainty of dx_px (NaN on invalid frames)",
+                      "sigma_dy_px": "px, standard uncertainty of dy_px",
+                      "sigma_px": "px, standard uncertainty of the displacement vector, "
+                                  "sqrt(sigma_dx_px^2 + sigma_dy_px^2)",
                       "flow_spread_px": "px (1.4826 MAD over kept POIs)",
                       "poi_kept_frac": "fraction of kept POIs measured and consistent with the frame's median",
                       "camera_dx_px": "px, the camera's image motion at the POIs (removed from dx_px); "
@@ -426,7 +431,7 @@ def cmd_track(args: argparse.Namespace) -> int:
                                        reference_average=args.reference_average, jobs=args.jobs,
                                        max_frames=args.max_frames, frames=frames, undistort=undistort,
                                        progress=not args.no_progress, store_dir=store_dir,
-                                       background=background)
+                                       background=background, mask=mask)
     notes.extend(source.notes)
     for warning in caught:
         notes.append(str(warning.message))

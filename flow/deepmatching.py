@@ -53,14 +53,21 @@ ATOMIC = 4  # atomic patch side in (downscaled) pixels
 N_ORIENT = 8
 
 
+# The default search radius: this share of the image's longer side, at least MIN_RADIUS px.
+REACH = 0.1
+MIN_RADIUS = 32.0
+
+
 @dataclass(frozen=True)
 class MatchParams:
     """Parameters of :func:`deep_matching`.
 
     downscale : int
         Integer factor the images are reduced by before matching (1 = none).
-    ngh_rad : float
-        Search radius in full-resolution pixels (``<= 0``: whole image, slow).
+    ngh_rad : float or None
+        Search radius in full-resolution pixels (``<= 0``: whole image, slow). None (the
+        default) scales it with the image: :data:`REACH` of its longer side, at least
+        :data:`MIN_RADIUS` px, so that a larger view of a moving structure is searched as far.
     max_patch : int
         Largest patch side in downscaled pixels (4 * 2**levels).
     presmooth_sigma, desc_sigma : float
@@ -78,7 +85,7 @@ class MatchParams:
     """
 
     downscale: int = 2
-    ngh_rad: float = 32.0
+    ngh_rad: float | None = None
     max_patch: int = 32
     presmooth_sigma: float = 1.0
     desc_sigma: float = 1.0
@@ -87,6 +94,13 @@ class MatchParams:
     reciprocal: bool = True
     reciprocal_tol: float = 3.0
     min_score: float = 0.0
+
+
+def search_radius(params: MatchParams, shape: tuple[int, ...]) -> float:
+    """The search radius (full-resolution px) ``params`` give for an image of ``shape``."""
+    if params.ngh_rad is None:
+        return max(MIN_RADIUS, REACH * max(shape[:2]))
+    return float(params.ngh_rad)
 
 
 @dataclass
@@ -613,7 +627,8 @@ def deep_matching(
     f1 = _descriptor_planes(im1, params)
     f2 = _descriptor_planes(im2, params)
     H, W = im1.shape
-    radius = params.ngh_rad / ds if params.ngh_rad > 0 else max(H, W)
+    reach = search_radius(params, reference.shape)
+    radius = reach / ds if reach > 0 else max(H, W)
     radius = int(math.ceil(min(radius, max(H, W))))
     ny, nx = H // ATOMIC, W // ATOMIC
     D = 2 * radius + 1

@@ -42,9 +42,20 @@ class Method:
 
 
 class DenseMethod(Method):
-    """Base class of dense reference-frame methods: implement :meth:`calc`."""
+    """Base class of dense reference-frame methods: implement :meth:`calc`.
+
+    A method may also use what the user says about the structure: the driver calls
+    :meth:`bind` once with the reference frame and the POI mask before the frames, and
+    after each :meth:`calc` reads :attr:`last_sigma_px`, the method's own standard
+    uncertainty of the mean displacement over the POIs (None: the driver estimates one).
+    """
 
     kind = "dense"
+    last_sigma_px: tuple[float, float] | None = None
+
+    def bind(self, reference: np.ndarray, mask: np.ndarray) -> None:
+        """Prepare for frames compared with ``reference``; ``mask`` (bool, same shape) marks
+        the POIs, the structure's pixels. The default ignores both."""
 
     def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         """Flow from ``reference`` to ``current``.

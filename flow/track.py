@@ -178,6 +178,10 @@ class Tracks:
     # taken out of dx, dy; None without a background.
     camera_dx: np.ndarray | None = None  # (F,) px
     camera_dy: np.ndarray | None = None
+    # Standard uncertainty of the frame's mean displacement over the POIs (px); None:
+    # estimated from the kept POIs' spread when measured (sparse methods).
+    sigma_dx: np.ndarray | None = None  # (F,) px
+    sigma_dy: np.ndarray | None = None
 
     @property
     def reference_row(self) -> int | None:
@@ -197,6 +201,8 @@ class Measurement:
     flow_spread_px: np.ndarray  # (F,) robust spread of the kept POIs' displacement
     residual_threshold: float
     consistency_band_px: float = float("nan")
+    sigma_dx: np.ndarray | None = None  # (F,) px, standard uncertainty of dx
+    sigma_dy: np.ndarray | None = None
 
 
 def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -297,12 +303,66 @@ def _no_frames(source: FrameSource, start: int, stop: int | None) -> InputError:
     return InputError("no frame to measure: the video is empty")
 
 
+class _LucasKanadeSigma:
+    """Standard uncertainty of a mean displacement over the POIs from the photometric residual.
+
+    The least-squares translation of the POIs has covariance ``s^2 (sum g g^T)^-1``
+    (``g`` the reference's gradients, ``s^2`` the residual variance), for independent
+    pixels; the residuals of a smoothed flow are correlated over neighbouring POIs, so it
+    is scaled by their design effect along rows and columns (``1 + 2 sum rho``).
+    """
+
+    def __init__(self, reference: np.ndarray, poi_xy: np.ndarray) -> None:
+        grey = reference.astype(np.float32)
+        gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+        gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+        cols, rows = poi_xy[:, 0], poi_xy[:, 1]
+        g = np.stack([gx[rows, cols], gy[rows, cols]], axis=1).astype(np.float64)
+        self._tensor = g.T @ g
+        self._x0, self._y0 = int(cols.min()), int(rows.min())
+        self._shape = (int(rows.max()) - self._y0 + 1, int(cols.max()) - self._x0 + 1)
+        self._rows, self._cols = rows - self._y0, cols - self._x0
+
+    def sigma(self, residual: np.ndarray) -> tuple[float, float]:
+        ok = np.isfinite(residual)
+        if ok.sum() < 3 or not np.all(np.isfinite(self._tensor)):
+            return float("nan"), float("nan")
+        r = np.where(ok, residual, 0.0) - residual[ok].mean()
+        var = float(np.mean(r[ok] ** 2))
+        image = np.full(self._shape, np.nan)
+        image[self._rows, self._cols] = np.where(ok, r, np.nan)
+        effect = _design_effect(image, var, axis=1) * _design_effect(image, var, axis=0)
+        try:
+            cov = np.linalg.inv(self._tensor) * var * effect
+        except np.linalg.LinAlgError:
+            return float("nan"), float("nan")
+        return float(np.sqrt(max(cov[0, 0], 0.0))), float(np.sqrt(max(cov[1, 1], 0.0)))
+
+
+def _design_effect(image: np.ndarray, var: float, *, axis: int, max_lag: int = 32) -> float:
+    """``1 + 2 sum rho(lag)`` of an image with NaN holes along one axis, while rho > 0."""
+    total = 1.0
+    if var <= 0:
+        return total
+    for lag in range(1, min(max_lag, image.shape[axis] - 1) + 1):
+        a = image[:, :-lag] if axis == 1 else image[:-lag]
+        b = image[:, lag:] if axis == 1 else image[lag:]
+        both = np.isfinite(a) & np.isfinite(b)
+        if both.sum() < 10:
+            break
+        rho = float(np.mean(a[both] * b[both])) / var
+        if rho <= 0:
+            break
+        total += 2.0 * rho
+    return total
+
+
 def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndarray, *,
                 reference_frame: int = 0, reference_average: int = 1, jobs: int = 1,
                 max_frames: int | None = None,
                 frames: tuple[int, int | None] | None = None, undistort: Undistort = None,
                 progress: bool = False, store_dir: str | Path | None = None,
-                background: Background | None = None) -> Tracks:
+                background: Background | None = None, mask: np.ndarray | None = None) -> Tracks:
     """Run a dense method of ``factory()`` on every frame against the reference frame.
 
     Parameters
@@ -331,6 +391,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         Static points: the camera motion fitted to their flow is subtracted from
         the POIs' (``Tracks.camera_dx`` records it; the residual stays that of the
         image motion itself).
+    mask : ndarray (H, W) bool, optional
+        The POI mask (default: the POIs' pixels), given to each method's ``bind``.
     """
     if jobs < 1:
         raise InputError(f"--jobs {jobs} must be >= 1")
@@ -341,10 +403,17 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     xs = columns.astype(np.float32)
     ys = rows_.astype(np.float32)
     ref_values = reference[rows_, columns].astype(np.float32)
+    if mask is None:
+        mask = np.zeros(reference.shape, bool)
+        mask[rows_, columns] = True
     idle: queue.SimpleQueue = queue.SimpleQueue()
     for _ in range(jobs):
-        idle.put(factory())
+        method = factory()
+        if hasattr(method, "bind"):
+            method.bind(reference, mask)
+        idle.put(method)
     local = threading.local()
+    lk = _LucasKanadeSigma(reference, poi_xy)
 
     poi_points = poi_xy.astype(np.float64)
     centroid = poi_points.mean(axis=0, keepdims=True)
@@ -359,16 +428,23 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         return ((dx - mx[:-1]).astype(np.float32), (dy - my[:-1]).astype(np.float32),
                 (float(mx[-1]), float(my[-1])))
 
-    def measure_frame(current: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, tuple[float, float]]:
+    def measure_frame(current: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, tuple[float, float],
+                                                    tuple[float, float]]:
         method = getattr(local, "method", None)
         if method is None:
             method = local.method = idle.get_nowait()
         flow = method.calc(reference, current)
         dx = flow[rows_, columns, 0].astype(np.float32)
         dy = flow[rows_, columns, 1].astype(np.float32)
-        residual = _residual(ref_values, current, xs, ys, dx, dy)
+        warped = _sample(current, xs + dx, ys + dy)
+        diff = np.abs(warped - ref_values)
+        finite = diff[np.isfinite(diff)]
+        residual = float(finite.mean()) if finite.size else float("nan")
+        sigma = getattr(method, "last_sigma_px", None)
+        if sigma is None:
+            sigma = lk.sigma(warped - ref_values)
         cdx, cdy, camera = compensate(flow, dx, dy)
-        return cdx, cdy, residual, camera
+        return cdx, cdy, residual, camera, sigma
 
     in_range = start <= reference_frame and (stop is None or reference_frame < stop)
     offset = None
@@ -388,6 +464,7 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     times: list[float] = []
     residuals: list[float] = []
     cameras: list[tuple[float, float]] = []
+    sigmas: list[tuple[float, float]] = []
 
     def collect(index: int, time_s: float, result: tuple) -> None:
         frame_list.append(index)
@@ -395,6 +472,7 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         store.append(result[0], result[1])
         residuals.append(result[2])
         cameras.append(result[3])
+        sigmas.append(result[4])
         bar.update(1)
 
     t1 = time.perf_counter()
@@ -434,11 +512,13 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         row = int(np.flatnonzero(frame_index == reference_frame)[0])
         offset = (reference_offset(dx, row), reference_offset(dy, row))
     camera = np.asarray(cameras, np.float64).reshape(-1, 2) if background is not None else None
+    sigma = np.asarray(sigmas, np.float64).reshape(-1, 2)
     return Tracks(frame_index, np.asarray(times), dx, dy, np.asarray(residuals), xs, ys,
                   reference_frame, offset[0], offset[1], _timings(t0, t1, t2, len(frame_list)),
                   source.truncated, source.header_frames, image_digest(reference),
                   camera_dx=None if camera is None else camera[:, 0],
-                  camera_dy=None if camera is None else camera[:, 1])
+                  camera_dy=None if camera is None else camera[:, 1],
+                  sigma_dx=sigma[:, 0], sigma_dy=sigma[:, 1])
 
 
 def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
@@ -628,7 +708,21 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
     band = max(band_ratio * float(np.median(typical)) if typical.size else 0.0, band_floor_px)
     kept_frac = _per_frame(tracks, filtered.kept, lambda bx, by: consistent_fraction(
         bx, by, band_px=band, relative=band_relative))
-    return Measurement(tracks, filtered, valid, kept_frac, spread, threshold, band)
+    if tracks.sigma_dx is not None and tracks.sigma_dy is not None:
+        sigma_dx, sigma_dy = np.asarray(tracks.sigma_dx, float), np.asarray(tracks.sigma_dy, float)
+    else:
+        # Features followed on their own (KLT): the standard error of their mean.
+        sigma_dx = _per_frame(tracks, filtered.kept, lambda bx, by: _standard_error(bx))
+        sigma_dy = _per_frame(tracks, filtered.kept, lambda bx, by: _standard_error(by))
+    return Measurement(tracks, filtered, valid, kept_frac, spread, threshold, band, sigma_dx, sigma_dy)
+
+
+def _standard_error(block: np.ndarray) -> np.ndarray:
+    """Per row, 1.4826 MAD / sqrt(n) of the finite values (NaN with fewer than 2)."""
+    with _NanQuiet():
+        n = np.isfinite(block).sum(axis=1)
+        mad = np.nanmedian(np.abs(block - np.nanmedian(block, axis=1, keepdims=True)), axis=1)
+        return np.where(n >= 2, 1.4826 * mad / np.sqrt(np.maximum(n, 1)), np.nan)
 
 
 def iter_rows(result: Measurement, mm_per_px: float) -> Iterable[dict[str, Any]]:
@@ -638,8 +732,11 @@ def iter_rows(result: Measurement, mm_per_px: float) -> Iterable[dict[str, Any]]
         ok = bool(result.valid[i])
         dx = float(result.filtered.dx[i]) if ok else float("nan")
         dy = float(result.filtered.dy[i]) if ok else float("nan")
+        sx = float(result.sigma_dx[i]) if ok and result.sigma_dx is not None else float("nan")
+        sy = float(result.sigma_dy[i]) if ok and result.sigma_dy is not None else float("nan")
         yield {"frame": int(tr.frame[i]), "time_s": float(tr.time_s[i]), "dx_px": dx, "dy_px": dy,
                "dx_mm": dx * mm_per_px, "dy_mm": dy * mm_per_px, "valid": int(ok),
+               "sigma_dx_px": sx, "sigma_dy_px": sy, "sigma_px": float(np.hypot(sx, sy)),
                "poi_kept_frac": float(result.poi_kept_frac[i]), "residual": float(tr.residual[i]),
                "flow_spread_px": float(result.flow_spread_px[i]),
                "camera_dx_px": float(tr.camera_dx[i]) if tr.camera_dx is not None else float("nan"),
@@ -658,6 +755,8 @@ def save_raw_tracks(path: str | Path, tracks: Tracks, meta: dict[str, Any]) -> N
     """
     camera = ({} if tracks.camera_dx is None
               else {"camera_dx_px": tracks.camera_dx, "camera_dy_px": tracks.camera_dy})
+    if tracks.sigma_dx is not None:
+        camera.update({"sigma_dx_px": tracks.sigma_dx, "sigma_dy_px": tracks.sigma_dy})
     write_npz(path, {"format": np.array(RAW_FORMAT), "meta": np.array(json.dumps(meta, sort_keys=True)),
                      "frame": tracks.frame, "time_s": tracks.time_s, "residual": tracks.residual,
                      "x_px": tracks.x_px, "y_px": tracks.y_px, "offset_dx_px": tracks.offset_dx,
@@ -746,7 +845,8 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
     # The reference frame's own row gives the offset where a part holds it (as in a whole run).
     holder = next((p for p in parts if reference_frame in p.small["frame"]), parts[0])
     per_frame = ("frame", "time_s", "residual") + (("camera_dx_px", "camera_dy_px")
-                                                   if "camera_dx_px" in first.small else ())
+                                                   if "camera_dx_px" in first.small else ()) \
+        + (("sigma_dx_px", "sigma_dy_px") if all("sigma_dx_px" in p.small for p in parts) else ())
     concat = {key: np.concatenate([p.small[key] for p in parts]) for key in per_frame}
     timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts) for key in ("setup_s", "frames_s")}
     timings["frames_per_s"] = len(concat["frame"]) / max(timings["frames_s"], 1e-9)
@@ -755,5 +855,6 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
                     holder.small["offset_dx_px"].astype(np.float64), holder.small["offset_dy_px"].astype(np.float64),
                     timings, any(p.meta["input"]["truncated"] for p in parts),
                     int(first.meta["input"]["header_frames"]), first.meta["identity"]["reference_digest"],
-                    camera_dx=concat.get("camera_dx_px"), camera_dy=concat.get("camera_dy_px"))
+                    camera_dx=concat.get("camera_dx_px"), camera_dy=concat.get("camera_dy_px"),
+                    sigma_dx=concat.get("sigma_dx_px"), sigma_dy=concat.get("sigma_dy_px"))
     return tracks, [p.meta for p in parts]

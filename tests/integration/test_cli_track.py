@@ -111,7 +111,7 @@ def test_occlusion_is_flagged_and_tracking_resumes(clip, tmp_path) -> None:
     assert rc == 0
     rows = read_csv(out)
     assert list(rows[0]) == ["frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "valid",
-                             "poi_kept_frac", "residual", "flow_spread_px", "camera_dx_px", "camera_dy_px"]
+                             "sigma_dx_px", "sigma_dy_px", "sigma_px", "poi_kept_frac", "residual", "flow_spread_px", "camera_dx_px", "camera_dy_px"]
     assert len(rows) == N
     valid = np.array([int(r["valid"]) for r in rows])
     assert (valid[list(OCCLUDED)] == 0).all()

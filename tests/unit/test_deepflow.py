@@ -187,7 +187,7 @@ def test_registry_and_parameters():
     method = deepflow_module.DeepFlow(preset="fast", alpha=1.5)
     params = method.params()
     assert params["alpha"] == 1.5 and params["eta"] == 0.8 and params["preset"] == "fast"
-    assert params["beta"] == 32.0 and params["ngh_rad"] == 32.0
+    assert params["beta"] == 32.0 and params["ngh_rad"] is None
     with pytest.raises(ValueError, match="unknown parameter"):
         deepflow_module.DeepFlow(alhpa=1.0)
     with pytest.raises(ValueError, match="unknown preset"):

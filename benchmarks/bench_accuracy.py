@@ -1,0 +1,219 @@
+"""Accuracy of every registered method with its defaults, on data this project did not make.
+
+For each clip of ``../shared/bench/clips`` (independent clips with exact truth, see their
+README) each method runs as a user runs it, ``refflow track CLIP --mask MASK --mm-per-px 1
+--out ...`` and nothing else, and the bench's own scorer (``score.py``) grades the CSV. The
+table adds what the scorer does not: the share of frames (outside the occlusion) whose error
+is within two of the method's own ``sigma`` (the 2-sigma coverage; 95 % for an honest
+Gaussian uncertainty), the time per frame from the run's sidecar, and per clip the physical
+floor: the Cramer-Rao bound of a translation along the clip's axis from the reference frame's
+gradients and the noise of the video (estimated from frame-to-frame differences of the static
+background), over the mask's pixels (the member's interior) and over the member with its
+outline (the mask grown to the member's edges, as ``deepflow`` grows it).
+
+The Middlebury 2014 "Motorcycle" pair (scikit-image's ``data.stereo_motorcycle()``: flow
+from the right image to the left is (+disparity, 0) where the disparity is known) gives the
+dense methods' mean end-point error on large displacements.
+
+    .venv/bin/python benchmarks/bench_accuracy.py [--methods deepflow,dis] [--clips lowtex-wide]
+        [--out results/bench_accuracy.md] [--json results/bench_accuracy.json]
+
+Prints a Markdown table (and writes it with --out); asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from flow import registry  # noqa: E402
+from flow.member import MemberParams, _grow  # noqa: E402
+
+BENCH = ROOT.parent / "shared" / "bench"
+REFFLOW = Path(sys.executable).with_name("refflow")
+
+
+def read_clip(folder: Path) -> tuple[np.ndarray, dict, np.ndarray]:
+    meta = json.loads((folder / "clip.json").read_text())
+    truth = np.loadtxt(folder / "truth.csv", delimiter=",", skiprows=1)
+    return truth, meta, cv2.imread(str(folder / meta.get("mask", "mask.png")), cv2.IMREAD_GRAYSCALE) > 127
+
+
+def frames_of(path: Path, limit: int = 40) -> list[np.ndarray]:
+    capture = cv2.VideoCapture(str(path))
+    out = []
+    while len(out) < limit:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        out.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY).astype(np.float64))
+    capture.release()
+    return out
+
+
+def cramer_rao(folder: Path, meta: dict, mask: np.ndarray) -> tuple[float, float]:
+    """(interior, with outline) lower bounds (px) on the error of a translation along the axis."""
+    frames = frames_of(folder / meta.get("video", "clip.mp4"))
+    reference = frames[0]
+    support = _grow(reference.astype(np.float32), mask, MemberParams())
+    # Static background, well clear of the member: its frame-to-frame change is the noise.
+    clear = ~(cv2.dilate(support.astype(np.uint8), np.ones((41, 41), np.uint8)) > 0)
+    diffs = [(b - a)[clear] for a, b in zip(frames[:-1], frames[1:], strict=False)]
+    noise_var = float(np.median([np.var(d) for d in diffs])) / 2.0
+    axis = 1 if meta.get("axis", "x") == "x" else 0
+    gradient = np.gradient(reference, axis=axis)
+    grown = cv2.dilate(support.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # the outline pixels too
+    bounds = []
+    for region in (mask, grown):
+        information = float(np.sum(gradient[region] ** 2)) / max(noise_var, 1e-9)
+        bounds.append(float(np.sqrt(1.0 / information)) if information > 0 else float("nan"))
+    return bounds[0], bounds[1]
+
+
+def run_method(method: str, folder: Path, meta: dict, out: Path) -> dict:
+    video, mask = folder / meta.get("video", "clip.mp4"), folder / meta.get("mask", "mask.png")
+    cmd = [str(REFFLOW), "track", str(video), "--mask", str(mask), "--mm-per-px", "1", "--method", method,
+           "--out", str(out), "--no-progress"]
+    started = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - started
+    if proc.returncode != 0:
+        return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
+    score = subprocess.run([sys.executable, str(BENCH / "score.py"), str(folder), str(out)],
+                           capture_output=True, text=True, check=True)
+    result = json.loads(score.stdout)
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    n_frames = sidecar["input"]["frames_measured"]
+    result["s_per_frame"] = sidecar["timings"]["frames_s"] / max(n_frames, 1)
+    result["wall_s"] = wall
+    result["coverage_2sigma"] = coverage(folder, meta, out)
+    return result
+
+
+def coverage(folder: Path, meta: dict, out: Path) -> float:
+    """Share of scored frames with |error| < 2 sigma (sigma_dx_px or sigma_dy_px; NaN without)."""
+    truth = np.loadtxt(folder / "truth.csv", delimiter=",", skiprows=1)
+    axis = meta.get("axis", "x")
+    key, sigma_key, col = (("dx_px", "sigma_dx_px", 2) if axis == "x" else ("dy_px", "sigma_dy_px", 3))
+    with out.open() as handle:
+        rows = list(csv.DictReader(handle))
+    if not rows or sigma_key not in rows[0]:
+        return float("nan")
+    measured = np.array([float(r[key]) for r in rows])
+    sigma = np.array([float(r[sigma_key]) for r in rows])
+    measured = measured - (measured[0] if np.isfinite(measured[0]) else 0.0)
+    true = truth[: len(rows), col] - truth[0, col]
+    t = truth[: len(rows), 1]
+    inside = np.zeros(len(rows), bool)
+    if meta.get("occlusion_s"):
+        inside = (t >= meta["occlusion_s"][0]) & (t < meta["occlusion_s"][1])
+    use = ~inside & np.isfinite(measured) & np.isfinite(sigma)
+    use[0] = False  # the reference frame itself: zero by construction
+    if not use.any():
+        return float("nan")
+    return float(np.mean(np.abs(measured[use] - true[use]) < 2 * sigma[use]))
+
+
+def motorcycle(methods: list[str]) -> dict[str, dict]:
+    try:
+        from skimage import data
+    except ImportError:
+        return {}
+    left, right, disparity = data.stereo_motorcycle()
+    reference = cv2.cvtColor(right, cv2.COLOR_RGB2GRAY)
+    current = cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
+    known = np.isfinite(disparity)
+    out = {}
+    for name in methods:
+        if registry.kinds()[name] != "dense":
+            continue
+        method = registry.get_method(name)
+        started = time.perf_counter()
+        flow = method.calc(reference, current)
+        elapsed = time.perf_counter() - started
+        error = np.hypot(flow[..., 0] - np.where(known, disparity, 0.0), flow[..., 1])[known]
+        out[name] = {"epe_px": float(error.mean()), "s": elapsed}
+    return out
+
+
+def fmt(value: float | None, digits: int = 3) -> str:
+    return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
+
+
+def table(results: dict, floors: dict, moto: dict, methods: list[str]) -> str:
+    lines = ["| clip | floor px (interior / with outline) | method | RMSE px | slope | max err px | "
+             "measured | 2-sigma coverage | post-recovery bias px | occluded flagged | s/frame |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for clip, per_method in results.items():
+        floor = floors.get(clip, (float("nan"), float("nan")))
+        best = min((r["rmse_px"] for r in per_method.values() if "rmse_px" in r), default=None)
+        for i, name in enumerate(methods):
+            r = per_method.get(name, {"error": "not run"})
+            head = (f"{clip} | {fmt(floor[0])} / {fmt(floor[1])}" if i == 0 else " | ")
+            if "error" in r:
+                lines.append(f"| {head} | {name} | failed: {r['error']} | | | | | | | |")
+                continue
+            rmse = fmt(r["rmse_px"]) + (" **best**" if best is not None and r["rmse_px"] == best else "")
+            lines.append(f"| {head} | {name} | {rmse} | {fmt(r['slope'], 4)} | {fmt(r['max_abs_err_px'])} | "
+                         f"{fmt(r['measured_fraction'], 3)} | {fmt(r.get('coverage_2sigma'), 2)} | "
+                         f"{fmt(r.get('post_recovery_bias_px'))} | {fmt(r.get('occluded_flagged_fraction'), 2)} | "
+                         f"{fmt(r['s_per_frame'], 3)} |")
+    if moto:
+        lines += ["", "| Motorcycle (Middlebury 2014) | mean EPE px | s |", "|---|---|---|"]
+        lines += [f"| {name} | {fmt(v['epe_px'], 2)} | {fmt(v['s'], 1)} |" for name, v in moto.items()]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--methods", help="comma-separated (default: every registered method)")
+    parser.add_argument("--clips", help="comma-separated clip names (default: all)")
+    parser.add_argument("--no-motorcycle", action="store_true")
+    parser.add_argument("--out", help="write the Markdown table here too")
+    parser.add_argument("--json", help="write the numbers as JSON here")
+    args = parser.parse_args(argv)
+    methods = args.methods.split(",") if args.methods else registry.available()
+    clips_dir = BENCH / "clips"
+    if not clips_dir.is_dir():
+        print(f"no bench clips at {clips_dir}", file=sys.stderr)
+        return 2
+    clips = args.clips.split(",") if args.clips else sorted(p.name for p in clips_dir.iterdir() if p.is_dir())
+    results: dict[str, dict] = {}
+    floors: dict[str, tuple[float, float]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for clip in clips:
+            folder = clips_dir / clip
+            _, meta, mask = read_clip(folder)
+            floors[clip] = cramer_rao(folder, meta, mask)
+            results[clip] = {}
+            for name in methods:
+                results[clip][name] = run_method(name, folder, meta, Path(tmp) / f"{clip}-{name}.csv")
+                r = results[clip][name]
+                print(f"{clip:14s} {name:16s} " + (f"rmse {r['rmse_px']:.3f} slope {r['slope']:.4f} "
+                      f"cov {r['coverage_2sigma']:.2f} {r['s_per_frame']:.3f} s/frame" if "rmse_px" in r
+                      else r["error"]), file=sys.stderr, flush=True)
+    moto = {} if args.no_motorcycle else motorcycle(methods)
+    text = table(results, floors, moto, methods)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"clips": results, "floors": floors, "motorcycle": moto},
+                                              indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
