@@ -5,38 +5,50 @@ information about its motion is at its edges, where it meets what is behind it.
 A dense flow with a smoothness term spreads the background's motion (often
 zero) across those edges into the member and under-reads it; a window-based
 tracker mixes the two. Here the user's POI mask says which pixels belong to the
-structure, and the edges are measured as what they are, the boundary between
+structure, and its edges are measured as what they are, the boundary between
 two layers:
 
 1. *Support.* In the reference frame the mask is grown, through pixels that
    look like the member (grey level and local gradient like the mask's), up to
-   where it ends; rows and columns that cross its outline give one *edge
-   profile* each (rows where the outline is steeper than 45 degrees, columns
+   where it ends; every row and column that crosses the outline gives one *edge
+   profile* (rows where the outline is steeper than 45 degrees, columns
    elsewhere).
-2. *Edge position by area.* A pixel on the outline integrates a fraction ``a``
-   of the member and ``1 - a`` of the background: ``I = a m + (1 - a) w``. With
-   ``m`` from the member pixel next to it and ``w``, the hidden background
-   under it, predicted from the visible background pixels beyond it, ``a``
-   gives the outline's position to a fraction of a pixel, exactly for
-   area-sampled images and whatever the member's grey. The predictor of ``w``
-   is the best linear predictor from the background's own autocovariance
-   (measured in the reference around the member): predicting it by its
-   neighbour alone regresses towards the neighbour and reads the motion about
-   1.5 % short on a textured wall.
-3. *Motion model.* Every profile measures the outline's displacement along its
-   row (``u - s v``, with ``s`` the outline's slope) or column (``v - t u``).
-   A low-order field, translation plus linear and quadratic terms along the
-   member (rotation, stretching, bending), is fitted to all of them by
-   iteratively re-weighted least squares (Tukey's biweight: profiles where the
-   hidden background was not predictable, or where something crosses the
-   outline, drop out), with each profile weighted by its expected variance
-   (noise and background prediction error over the edge contrast). Directions
-   the outline does not constrain (motion along a straight member) keep the
-   dense flow's value through a weak prior.
+2. *Outline position.* A pixel on the outline integrates a fraction of the
+   member and the rest of the background: ``I = w + (m - w) Phi(e - j)``, with
+   ``Phi`` the member's area coverage of the pixel (a step, optionally blurred),
+   ``m`` the member's grey and ``w`` the background hidden under the pixel. ``w``
+   is predicted from the visible background pixels beyond the outline by the
+   best linear predictor from the background's own autocovariance (measured in
+   the reference around the member): predicting it by its neighbour alone
+   regresses towards the neighbour and reads the motion about 1.5 % short on a
+   textured wall. ``e`` (and ``m``) are fitted by Gauss-Newton, the pixels the
+   model uses following ``e`` itself, so the estimate is continuous and does not
+   stick to its starting guess; it is exact for area-sampled images whatever the
+   member's grey.
+3. *Motion field.* Every profile measures the outline's displacement along its
+   row (``u - s v``, ``s`` the outline's slope) or column (``v - s u``). A beam's
+   kinematics, translation, rotation and bending across the member, translation,
+   stretch and rotation along it, is fitted to all profiles by iteratively
+   re-weighted least squares (Tukey's biweight: profiles where the hidden
+   background was not predictable, or something crosses the outline, drop out),
+   each profile weighted by its variance from the outline fit. Directions the
+   outline does not constrain (motion along a straight member) keep the dense
+   flow's value through a weak prior.
+4. *Blur.* The outline's spread (lens focus, motion blur, a codec's smoothing)
+   is not known and a key frame differs from the frames predicted from it, so
+   each frame is measured under several blur models and the one under which all
+   outlines agree best on one motion is kept.
 
-The fit's covariance (scaled by the robust residual spread) gives the
-standard uncertainty of the mean displacement over the POIs, frame by frame;
-the reference frame's own edge errors, common to every frame, are added.
+The dense flow only starts it: a coarse step finds each outline within a few
+pixels of the dense flow's guess (a jump, an under-read), the fit of all
+profiles then predicts every outline to a few hundredths of a pixel for the
+fine fit.
+
+Uncertainty: the fit's covariance, scaled by the robust spread of the
+standardised residuals and by the design effect of neighbouring profiles'
+correlated errors (they share a blob of background texture, a codec block),
+plus the spread of the blur models' answers (a systematic error all profiles
+of a straight outline share, which their scatter cannot show).
 
 Frames stay independent: each frame is compared with the reference only.
 
@@ -44,9 +56,10 @@ References
 ----------
 .. [1] P. J. Huber, *Robust Statistics*, Wiley 1981 (M-estimation, IRLS).
 .. [2] A. J. Tabatabai, O. R. Mitchell, "Edge location to subpixel values in
-   digital imagery", IEEE TPAMI 6(2), 1984 (edge location from area/moments).
+   digital imagery", IEEE TPAMI 6(2), 1984 (edge location from area and moments).
 .. [3] N. Cressie, *Statistics for Spatial Data*, Wiley 1993 (best linear
    prediction from the covariance, kriging).
+.. [4] L. Kish, *Survey Sampling*, Wiley 1965 (the design effect of correlated samples).
 """
 
 from __future__ import annotations
@@ -70,6 +83,14 @@ BLURS = (0.0, 0.3, 0.5, 0.7, 1.0)
 # Parameters of the motion field across and along the member (see _Field).
 N_ACROSS = 3
 N_PARAMS = 6
+# Outline models whose profiles agree within this factor of the best one's are plausible.
+PLAUSIBLE = 4.0
+# Floor of the robust scale of the standardised profile residuals.
+MIN_SCALE = 0.5
+# A reference profile whose model misfit exceeds this many times the median is not used.
+MISFIT_RATIO = 4.0
+# Half length of the profile a frame is matched to the reference over, whole.
+SHIFT_HALF = 5
 # Gauss-Newton steps of one outline fit.
 N_STEPS = 8
 # Farthest neighbour (lines apart) whose error correlation the uncertainty accounts for.
@@ -273,6 +294,7 @@ class MemberEdges:
         if mask.sum() < 3:
             raise ValueError("the mask holds fewer than 3 pixels")
         self.shape = ref.shape
+        self._ref_image = ref
         self.support = _grow(ref, mask, self.params)
         # Variance of a member pixel about its neighbours (paint texture and noise).
         inner = cv2.erode(self.support.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
@@ -351,10 +373,18 @@ class MemberEdges:
         # Outline displacement along its line: u - s v (rows) or v - s u (columns).
         self.design = self.field.design(np.where(self.vertical, -self.slope, ones),
                                         np.where(self.vertical, ones, -self.slope))
-        self.ref_by_blur = [_Outline(o.edge[keep], o.var[keep], o.contrast[keep], o.misfit[keep])
-                            for o in outlines]
+        self.ref_by_blur = []
+        for o in outlines:
+            # A profile the model does not explain in the reference (a smooth mark on the
+            # member, two outlines in one strip) is left out of that model's fits.
+            misfit = o.misfit[keep]
+            typical = float(np.nanmedian(misfit)) if np.isfinite(misfit).any() else np.inf
+            good = np.isfinite(misfit) & (misfit <= MISFIT_RATIO * max(typical, 1.0))
+            self.ref_by_blur.append(_Outline(np.where(good, o.edge[keep], np.nan), o.var[keep],
+                                             o.contrast[keep], misfit))
         self.ref = self.ref_by_blur[0]
         self.n_profiles = int(keep.sum())
+
 
     # -- outline location --------------------------------------------------------------------------
 
@@ -393,6 +423,61 @@ class MemberEdges:
         # The steepest fall is at the outline: the boundary coordinate of pixel t's centre.
         return np.where(finite, centre + self.side * (t - HALF), np.nan).astype(np.float64)
 
+    def _shift(self, image: np.ndarray, guess: np.ndarray, gain: float | None) -> _Outline:
+        """Outline positions by matching each profile of the reference as a whole.
+
+        The reference's pixels within :data:`SHIFT_HALF` of its outline are compared with
+        the frame's along the same line, displaced by ``d`` (linear interpolation), and
+        ``d`` is fitted by Gauss-Newton: exact when what is behind the member is uniform,
+        whatever the outline's blur and the member's shading; a textured background, which
+        does not move, biases it (the two-layer models are then the ones that agree).
+        """
+        n = len(self.line)
+        ref_edge = self.ref.edge
+        finite = np.isfinite(guess) & np.isfinite(ref_edge)
+        d = np.where(finite, guess - ref_edge, 0.0)
+        offsets = np.arange(-SHIFT_HALF, SHIFT_HALF + 1)
+        base = np.floor(np.where(np.isfinite(ref_edge), ref_edge, 0.0) + 0.5).astype(np.intp)
+        along = base[:, None] + self.side[:, None] * offsets[None, :]
+        height, width = image.shape
+        length = np.where(self.vertical, height, width)[:, None]
+        ok = finite & np.all((along >= 1) & (along < length - 2), axis=1)
+        along = np.clip(along, 0, length - 1)
+        line = np.broadcast_to(self.line[:, None], along.shape)
+
+        def sample(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
+            pos = np.clip(pos, 0, length - 1.001)
+            lo = np.floor(pos).astype(np.intp)
+            frac = pos - lo
+            hi = np.minimum(lo + 1, length - 1)
+            r0 = np.where(self.vertical[:, None], lo, line)
+            c0 = np.where(self.vertical[:, None], line, lo)
+            r1 = np.where(self.vertical[:, None], hi, line)
+            c1 = np.where(self.vertical[:, None], line, hi)
+            return (1 - frac) * img[r0, c0] + frac * img[r1, c1]
+
+        reference = self._ref_image[np.where(self.vertical[:, None], along, line),
+                                    np.where(self.vertical[:, None], line, along)].astype(np.float64)
+        scale = 1.0 if gain is None else gain
+        cur = image.astype(np.float64)
+        var = np.full(n, np.nan)
+        misfit = np.full(n, np.nan)
+        for _ in range(N_STEPS):
+            pos = along + d[:, None]
+            value = sample(cur, pos) / scale
+            slope = 0.5 * (sample(cur, pos + 0.5) - sample(cur, pos - 0.5)) / scale * 2.0
+            r = value - reference
+            h = np.sum(slope * slope, axis=1)
+            good = h > 1e-9
+            step = np.where(good, -np.sum(slope * r, axis=1) / np.where(good, h, 1.0), 0.0)
+            d = d + np.clip(step, -0.5, 0.5)
+            resid = np.mean(r * r, axis=1)
+            var = np.where(good, (resid + self.member_var) / np.where(good, h, 1.0), np.nan)
+            misfit = resid
+            ok &= good
+        edge = np.where(ok, ref_edge + d, np.nan)
+        return _Outline(edge, var, self.ref.contrast.copy(), misfit)
+
     def _fine(self, image: np.ndarray, guess: np.ndarray, gain: float | None, blur: float) -> _Outline:
         """Outline positions to a fraction of a pixel: a two-layer model of the profile fitted
         by Gauss-Newton.
@@ -414,18 +499,19 @@ class MemberEdges:
         error = np.where(self.vertical[:, None], cols.error[None], rows.error[None])
         mean = np.where(self.vertical, cols.mean, rows.mean) * (1.0 if gain is None else gain)
         reach = 2.5 * blur
-        width = int(np.ceil(2 * reach)) + 4  # model pixels: 2 member, transition, none beyond
+        n_member = 2
+        width = int(np.ceil(2 * reach)) + 2 + n_member  # member pixels, transition, none beyond
         idx = np.arange(n)[:, None]
         # Strip coordinate of the outline (pixel j spans [j - 0.5, j + 0.5]).
         e = HALF + self.side * (g - centre)
-        start = np.floor(e - 0.5 - reach).astype(np.intp) - 1
-        m = values[np.arange(n), np.clip(start + 1, 0, 2 * HALF)]
+        start = np.floor(e - 0.5 - reach).astype(np.intp) - (n_member - 1)
+        m = values[np.arange(n), np.clip(start + n_member - 1, 0, 2 * HALF)]
         ok = finite & inside
         var_e = np.full(n, np.nan)
         misfit = np.full(n, np.nan)
         contrast = np.zeros(n)
         for _ in range(N_STEPS):
-            start = np.floor(e - 0.5 - reach).astype(np.intp) - 1  # first of the two member pixels
+            start = np.floor(e - 0.5 - reach).astype(np.intp) - (n_member - 1)  # first member pixel
             first_bg = np.ceil(e + 0.5 + reach).astype(np.intp)  # first pure background pixel
             ok &= (start >= 0) & (first_bg + N_PREDICT <= 2 * HALF)
             start = np.clip(start, 0, 2 * HALF)
@@ -438,13 +524,15 @@ class MemberEdges:
             c = coef[np.arange(n)[:, None], distance]  # (n, width, N_PREDICT)
             wall = mean[:, None] + np.einsum("nwk,nk->nw", c, beyond - mean[:, None])
             wall_var = np.take_along_axis(error, distance, axis=1)
-            phi, dphi = _coverage(e[:, None] - j, blur)
+            inside_px = e[:, None] - j
+            phi, dphi = _coverage(inside_px, blur)
             v = values[idx, j]
-            model = wall + (m[:, None] - wall) * phi
+            member = m[:, None]
+            model = wall + (member - wall) * phi
             r = np.where(used, v - model, 0.0)
             s = self.member_var + (1.0 - phi) ** 2 * wall_var
             wgt = np.where(used, 1.0 / s, 0.0)
-            je = (m[:, None] - wall) * dphi
+            je = (member - wall) * dphi
             jm = phi
             h11 = np.sum(wgt * je * je, axis=1)
             h12 = np.sum(wgt * je * jm, axis=1)
@@ -462,8 +550,9 @@ class MemberEdges:
             n_used = np.maximum(used.sum(axis=1), 1)
             misfit = np.sum(wgt * r * r, axis=1) / n_used
             near = np.clip(np.floor(e + 0.5).astype(np.intp), 0, 2 * HALF)
-            k = np.clip(near - start, 0, width - 1)
-            contrast = m - wall[np.arange(n), k]
+            kk = np.clip(near - start, 0, width - 1)
+            member_near = np.broadcast_to(member, wall.shape)
+            contrast = member_near[np.arange(n), kk] - wall[np.arange(n), kk]
             ok &= good
         ok &= np.isfinite(e) & (np.sign(contrast) == self.polarity)
         edge = np.where(ok, centre + self.side * (e - HALF), np.nan)
@@ -514,15 +603,33 @@ class MemberEdges:
                 guess = ref.edge + self.design @ theta
             if result is not None:
                 results.append(result)
+        # The profiles matched whole (for outlines over a uniform background).
+        guess = start
+        result = None
+        for _ in range(2):
+            found = self._shift(cur, guess, gain)
+            usable = np.isfinite(found.edge) & np.isfinite(self.ref.edge)
+            if usable.sum() < self.params.min_profiles:
+                result = None
+                break
+            d = (found.edge - self.ref.edge)[usable]
+            result = self._solve(d, usable, 1.0 / np.maximum(found.var[usable], 1e-8), prior)
+            if result is None:
+                break
+            guess = self.ref.edge + self.design @ result[0]
+        if result is not None:
+            results.append(result)
         if not results:
             return empty
-        theta, cov, used, scale, _ = min(results, key=lambda r: r[4])
-        # What the blur models disagree on is a systematic error the fit's scatter cannot
-        # show (every profile of a straight outline shares its sub-pixel phase): their
-        # spread enters the uncertainty.
+        theta, cov, used, scale, best = min(results, key=lambda r: r[4])
+        # What the plausible outline models (their outlines agree within PLAUSIBLE times the
+        # best one's spread) disagree on is a systematic error the fit's scatter cannot show:
+        # every profile of a straight outline shares its sub-pixel phase, so a model's
+        # phase-dependent error is common to all of them. Their spread enters the uncertainty.
+        plausible = [r for r in results if r[4] <= PLAUSIBLE * best + 1e-3]
         gu, gv = self.poi_field.mean_gradient()
-        means = np.array([[gu @ r[0], gv @ r[0]] for r in results])
-        systematic = means.std(axis=0) if len(results) > 1 else np.zeros(2)
+        means = np.array([[gu @ r[0], gv @ r[0]] for r in plausible])
+        systematic = means.std(axis=0) if len(plausible) > 1 else np.zeros(2)
         return MemberFit(True, theta, cov, used, self.n_profiles, scale, systematic)
 
     def _normal(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -542,7 +649,8 @@ class MemberEdges:
             H = A.T @ (A * weights[:, None]) + lam * np.eye(N_PARAMS)
             theta = np.linalg.solve(H, A.T @ (weights * d) + lam * prior)
             z = (d - A @ theta) * np.sqrt(w0)  # standardised residuals
-            scale = 1.4826 * float(np.median(np.abs(z - np.median(z)))) + 1e-12
+            # Never below half the modelled noise: exact data must not make every profile an outlier.
+            scale = max(1.4826 * float(np.median(np.abs(z - np.median(z)))), MIN_SCALE)
             u = z / (self.params.tukey_c * scale)
             weights = w0 * np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
         used = int((weights > 0).sum())
