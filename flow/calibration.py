@@ -213,6 +213,20 @@ def undistort_points(points_xy: np.ndarray, camera_matrix: Any, dist_coeffs: Any
     return ideal.reshape(-1, 2)
 
 
+def point_undistorter(calibration: dict[str, Any] | None) -> Callable[[np.ndarray], np.ndarray] | None:
+    """Raw video pixels to undistorted sensor pixels for a calibration dict holding
+    ``camera_matrix``, ``dist_coeffs`` and optionally ``video_origin`` (None: no calibration)."""
+    if calibration is None:
+        return None
+    camera, dist = calibration["camera_matrix"], calibration["dist_coeffs"]
+    origin = tuple(calibration.get("video_origin") or (0, 0))
+
+    def undistort(points_xy: np.ndarray) -> np.ndarray:
+        return undistort_points(points_xy, camera, dist, origin)
+
+    return undistort
+
+
 def scale_from_known_length(length_mm: float, between: str,
                             undistort_points: Callable[[np.ndarray], np.ndarray] | None = None) -> float:
     """mm per pixel from a known length between two image points ``X1,Y1,X2,Y2``.

@@ -247,10 +247,17 @@ def _check_scale_options(args: argparse.Namespace) -> None:
         raise InputError("--known-length needs --between X1,Y1,X2,Y2 (and vice versa)")
 
 
-def _scale(args: argparse.Namespace, undistort_points: Any) -> tuple[float, str]:
-    """``(mm_per_px, how)``; NaN when no scale was given (mm columns are then NaN)."""
-    from flow.calibration import scale_from_known_length
+def _scale(args: argparse.Namespace, calibration: dict[str, Any] | None) -> tuple[float, str]:
+    """``(mm_per_px, how)``; NaN when no scale was given (mm columns are then NaN).
 
+    ``calibration``: the run's calibration summary (``_calibration_summary``, also what a
+    part's sidecar holds) or None. Scale points are raw video pixels; with a calibration
+    they are undistorted first, because the displacements are measured undistorted. `track`
+    and `merge` both come here, so the two give the same mm per pixel.
+    """
+    from flow.calibration import point_undistorter, scale_from_known_length
+
+    undistort_points = point_undistorter(calibration)
     if args.scale_file is not None:
         return _scale_from_file(args.scale_file, undistort_points)
     if args.known_length is not None:
@@ -410,7 +417,8 @@ def cmd_track(args: argparse.Namespace) -> int:
     _output_names(args)
     source = _open(args)
     undistort, calibration = _undistorter(args, source)
-    mm_per_px, scale_source = _scale(args, undistort.undistort_points if undistort is not None else None)
+    calibration_info = _calibration_summary(args, calibration)
+    mm_per_px, scale_source = _scale(args, calibration_info)
     mask = _mask_for(args, source, undistort)
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
     background = _background_for(args, source, undistort, mask)
@@ -439,7 +447,6 @@ def cmd_track(args: argparse.Namespace) -> int:
     if scale_source.startswith("none"):
         notes.append("no scale given: pass --mm-per-px or --known-length/--between for mm")
     roi = source.roi
-    calibration_info = _calibration_summary(args, calibration)
     poi_info = {"count": int(len(tracks.x_px)), "source": "features" if sparse else "mask",
                 "mask_pixels": int(mask.sum()), "grid_step": args.grid_step}
     background_info = None if background is None else {
@@ -482,16 +489,9 @@ def cmd_merge(args: argparse.Namespace) -> int:
     store_dir = Path(args.out).resolve().parent
     tracks, metas = track.load_raw_tracks(args.parts, store_dir=store_dir if store_dir.is_dir() else None)
     first = metas[0]
-    undistort_points = None
-    calibration = first["calibration"]
-    if calibration is not None and args.known_length is not None:
-        from flow.calibration import undistort_points as undistort
-
-        # --between is in raw video pixels, like in `track`; the parts were measured undistorted.
-        def undistort_points(points):
-            return undistort(points, calibration["camera_matrix"], calibration["dist_coeffs"],
-                             calibration.get("video_origin", (0, 0)))
-    mm_per_px, scale_source = _scale(args, undistort_points)
+    # The parts were measured undistorted: the scale points are carried through the same
+    # calibration, exactly as `track` does (one code path, _scale).
+    mm_per_px, scale_source = _scale(args, first["calibration"])
     notes = [note for meta in metas for note in meta.get("notes", []) if "no scale given" not in note]
     if scale_source.startswith("none"):
         notes.append("no scale given: pass --mm-per-px or --known-length/--between for mm")

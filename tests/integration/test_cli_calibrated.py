@@ -132,3 +132,33 @@ def test_cropped_recording_uses_the_full_sensor_calibration(lens_clip, tmp_path)
     assert main(["track", str(crops), "--video-origin", "1,1", "--rect", "0,0,50,50", "--fps", "30",
                  "--out", str(tmp_path / "bad.csv"), "--no-progress"]) == 2
     assert not (tmp_path / "bad.csv").exists()
+
+
+@pytest.mark.parametrize("scale_kind", ["scale-file", "known-length"])
+def test_merge_of_parts_scales_like_one_track_run(lens_clip, tmp_path, scale_kind) -> None:
+    """`merge` carries the scale points through the calibration exactly as `track` does: the
+    same mm per pixel and a byte-identical CSV, whether the points come from a scale file or
+    from --known-length/--between (issue 14: merge once skipped the scale file's points)."""
+    length = 100 * MM_PER_IDEAL_PX
+    if scale_kind == "scale-file":
+        scale_file = tmp_path / "scale.json"
+        scale_file.write_text(json.dumps({"known_length_mm": length,
+                                          "between_px": [float(v) for v in lens_clip["between"].split(",")]}))
+        scale = ["--scale-file", str(scale_file)]
+    else:
+        scale = ["--known-length", str(length), "--between", lens_clip["between"]]
+    common = [str(lens_clip["frames"]), "--fps", "30", "--rect", "6,6,110,80", "--method", "dis",
+              "--calibration", str(lens_clip["calibration"]), "--no-progress"]
+    whole = tmp_path / "whole.csv"
+    assert main(["track", *common, *scale, "--out", str(whole)]) == 0
+    parts = [str(tmp_path / "a.npz"), str(tmp_path / "b.npz")]
+    for span, part in zip(("0:4", "4:8"), parts, strict=True):
+        assert main(["track", *common, "--frames", span, "--raw-tracks", part]) == 0
+    merged = tmp_path / "merged.csv"
+    assert main(["merge", *parts, *scale, "--out", str(merged)]) == 0
+    assert merged.read_text() == whole.read_text()
+    track_meta, merge_meta = (json.loads(p.with_suffix(".json").read_text()) for p in (whole, merged))
+    assert merge_meta["scale"]["mm_per_px"] == track_meta["scale"]["mm_per_px"]
+    # The undistorted scale, not the raw one: 100 ideal px between the points.
+    assert track_meta["scale"]["mm_per_px"] == pytest.approx(MM_PER_IDEAL_PX, rel=0.002)
+    assert "(undistorted)" in merge_meta["scale"]["source"]
