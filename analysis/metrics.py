@@ -3,6 +3,13 @@
 Every key carries its unit (``rmse_mm``, ``drift_mm_per_s``, ``..._pct``,
 ``..._hz``); ratios without a unit end in ``_ratio`` or ``_frac``.
 Error is always ``measured - reference`` in world x (mm) or image x (px).
+
+Maximum displacement (``max_disp_*``, Table 1) is read as the paper reads its Fig. 8: the
+largest excursion after the release (the hold before a pluck excluded: every method is put
+into the laser's datum there, so the hold itself says nothing), from the rest position that
+each series shows after the release (its own mean there). A constant offset of a method
+does not move it; a scale error does, one for one. ``p2p_first_cycles_*`` is the
+peak-to-peak amplitude over the first ``p2p_cycles`` periods of mode 1 after the release.
 """
 
 from __future__ import annotations
@@ -13,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .modal import identify
-from .readers import Sensor, model_modes_hz, track_mm
+from .readers import Sensor, model_modes_hz, release_time_s, track_mm
 from .spectra import alias_frequency, band_power, nearest_peak, pick_peaks, welch_psd
 from .sync import align, datum_offset, estimate_offset, lowpass
 
@@ -30,6 +37,7 @@ DEFAULTS: dict[str, Any] = {
     "recovery_threshold_mm": None,  # default: max(4 x pre-occlusion RMSE, 0.02 mm) pointwise,
                                     # max(pre-occlusion RMSE, 0.02 mm) on the hold-window mean
     "mode_count": 3,
+    "p2p_cycles": 2,               # peak-to-peak amplitude over the first 2 periods of mode 1
 }
 
 
@@ -166,6 +174,36 @@ def identify_mode1(meas_mm: np.ndarray, fps: float, model_hz: float) -> dict[str
             "mode1_identified_damping_ratio": float(mode["damping_ratio"])}
 
 
+def _pct(measured: float, reference: float) -> float:
+    return 100.0 * (measured - reference) / reference if reference > 0 else float("nan")
+
+
+def amplitude_metrics(time_s: np.ndarray, ref_mm: np.ndarray, meas_mm: np.ndarray, use: np.ndarray, *,
+                      release_s: float, period_s: float, cycles: int = 2) -> dict[str, float]:
+    """Maximum displacement and first cycles' peak-to-peak, measured and reference.
+
+    ``time_s`` on the reference's clock; ``use``: the frames both series are compared on.
+    Only frames from ``release_s`` on count; each series is taken about its own mean there
+    (its rest position), so a constant offset of ``meas_mm`` changes nothing and a scale
+    factor ``k`` gives an error of ``100 (k - 1)`` %.
+    """
+    after = use & (time_s >= release_s)
+    nan = float("nan")
+    if after.sum() < 8:
+        return {"max_disp_meas_mm": nan, "max_disp_ref_mm": nan, "max_disp_error_pct": nan,
+                "p2p_first_cycles_meas_mm": nan, "p2p_first_cycles_ref_mm": nan,
+                "p2p_first_cycles_error_pct": nan, "release_s": float(release_s)}
+    ref = ref_mm[after] - np.mean(ref_mm[after])
+    meas = meas_mm[after] - np.mean(meas_mm[after])
+    max_ref, max_meas = float(np.max(np.abs(ref))), float(np.max(np.abs(meas)))
+    first = time_s[after] < time_s[after][0] + cycles * period_s
+    p2p_ref, p2p_meas = float(np.ptp(ref[first])), float(np.ptp(meas[first]))
+    return {"max_disp_meas_mm": max_meas, "max_disp_ref_mm": max_ref,
+            "max_disp_error_pct": _pct(max_meas, max_ref),
+            "p2p_first_cycles_meas_mm": p2p_meas, "p2p_first_cycles_ref_mm": p2p_ref,
+            "p2p_first_cycles_error_pct": _pct(p2p_meas, p2p_ref), "release_s": float(release_s)}
+
+
 def evaluate(sensor: Sensor, sim_json: dict[str, Any], truth: dict[str, np.ndarray],
              mm_per_px: float, fps: float, track: dict[str, np.ndarray],
              params: dict[str, Any] | None = None, *, nominal_lag_s: float = 0.0) -> dict[str, Any]:
@@ -205,12 +243,15 @@ def evaluate(sensor: Sensor, sim_json: dict[str, Any], truth: dict[str, np.ndarr
 
     unocc = both & (occluded == 0)
 
-    max_ref = float(np.max(np.abs(ref_mm[both])))
-    max_meas = float(np.max(np.abs(meas_mm[both])))
+    release_s = release_time_s(sim_json)
+    amplitude = amplitude_metrics(t + al.lag_s, ref_mm, meas_mm, unocc, release_s=release_s,
+                                  period_s=1.0 / float(modes_hz[0]), cycles=int(p["p2p_cycles"]))
+    max_ref = amplitude["max_disp_ref_mm"]
     span_t = t[both] + al.lag_s
-    in_span = (sensor.time_s >= span_t[0]) & (sensor.time_s <= span_t[-1])
+    in_span = (sensor.time_s >= max(span_t[0], release_s)) & (sensor.time_s <= span_t[-1])
     filtered_1khz = lowpass(sensor.dx_mm, sensor.rate_hz, cutoff_hz=p["lowpass_hz"], order=int(p["lowpass_order"]))
-    max_ref_1khz = float(np.max(np.abs(filtered_1khz[in_span])))
+    laser = filtered_1khz[in_span]
+    max_ref_1khz = float(np.max(np.abs(laser - np.mean(laser)))) if laser.size else float("nan")
     e = err_mm[both]
     slope = float(np.polyfit(t[both], e, 1)[0]) if both.sum() > 2 else float("nan")
     out: dict[str, Any] = {
@@ -222,10 +263,9 @@ def evaluate(sensor: Sensor, sim_json: dict[str, Any], truth: dict[str, np.ndarr
         "sync_lag_nominal_s": float(nominal_lag_s),
         "sync_corr": al.corr,
         "sign_flip_suspected": al.sign_flip_suspected,
-        "max_disp_meas_mm": max_meas,
-        "max_disp_ref_mm": max_ref,  # at the frame times: what a perfect camera could see
+        # max_disp_ref_mm: at the frame times, what a perfect camera could see
+        **amplitude,
         "max_disp_ref_1khz_mm": max_ref_1khz,  # the filtered laser itself, same time span
-        "max_disp_error_pct": 100.0 * (max_meas - max_ref) / max_ref if max_ref > 0 else float("nan"),
         "rmse_mm": rmse(e),
         "rmse_px": rmse(err_px[both]),
         "rmse_pct_of_max_ref": 100.0 * rmse(e) / max_ref if max_ref > 0 else float("nan"),

@@ -161,6 +161,22 @@ def model_modes_hz(sim_json: dict[str, Any], source: str = "sim.json") -> np.nda
     return values
 
 
+def release_time_s(sim_json: dict[str, Any]) -> float:
+    """When a pluck lets the beam go (simulation time, s); 0.0 without a pluck.
+
+    sim.json's ``parameters.excitation`` lists each component as ``{"type", "params":
+    [[key, value], ...]}`` (sim/beam.py); before the pluck's ``start_s`` the beam is held.
+    """
+    parameters = sim_json.get("parameters")
+    components = parameters.get("excitation", []) if isinstance(parameters, dict) else []
+    for component in components or []:
+        if isinstance(component, dict) and component.get("type") == "pluck":
+            params = dict(component.get("params") or [])
+            start = params.get("start_s", 0.0)
+            return float(start) if start is not None else 0.0
+    return 0.0
+
+
 def render_scale(render_json: dict[str, Any], source: str = "render.json") -> tuple[float, float]:
     """``(mm_per_px, fps)`` from the render sidecar."""
     for key in ("mm_per_px", "fps"):

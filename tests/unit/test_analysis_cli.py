@@ -190,3 +190,30 @@ def test_calm_scenario_unitless_track_and_table1_choice(tmp_path):
     t1_md = tmp_path / "t1.md"
     assert main(["table1", str(out), "--out-md", str(t1_md), "--out-csv", str(tmp_path / "t1.csv")]) == 0
     assert "`calm`" in t1_md.read_text()
+
+
+@pytest.mark.parametrize("scale, shift_mm, expected_pct", [(1.0, 0.0, 0.0), (0.95, 0.0, -5.0), (1.0, 0.3, 0.0),
+                                                          (1.05, -0.2, 5.0)])
+def test_max_displacement_error_moves_with_scale_not_offset(tmp_path, scale, shift_mm, expected_pct):
+    """Table 1's maximum-displacement error must see a scale error one for one and ignore a
+    constant offset: it is read after the release, about each series' own rest position (the
+    hold before the pluck, where every method is put into the laser's datum, is excluded).
+    Mode 1 only: the 30 Hz low-pass of the reference would otherwise take part of mode 2."""
+    scenario = make_scenario(tmp_path, duration_s=8.0, occlusion_s=None, amplitudes_mm=(2.2, 0.0, 0.0))
+    rows = list(csv.DictReader(Path(scenario["truth"]).open()))
+    truth_mm = np.array([float(r["dx_mm"]) for r in rows])
+    measured = scale * (truth_mm - truth_mm[0]) + shift_mm  # a perfect tracker, scaled and shifted
+    track = tmp_path / "track.csv"
+    with track.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "valid", "poi_kept_frac"])
+        for r, value in zip(rows, measured, strict=True):
+            writer.writerow([r["frame"], r["time_s"], f"{value * 2.8:.6f}", "0", f"{value:.6f}", "0", 1, 1])
+    out = tmp_path / "m.json"
+    assert _evaluate({**scenario, "custom": track}, "custom", out) == 0
+    data = json.loads(out.read_text())
+    assert data["release_s"] == 0.5
+    assert data["max_disp_error_pct"] == pytest.approx(expected_pct, abs=0.2)
+    assert data["p2p_first_cycles_error_pct"] == pytest.approx(expected_pct, abs=0.2)
+    # the swing after the release, not the hold: the first cycles' peak-to-peak is about twice it
+    assert data["p2p_first_cycles_ref_mm"] > 1.5 * data["max_disp_ref_mm"]
