@@ -50,7 +50,8 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
     metrics = evaluate(sensor, sim_json, truth, mm_per_px, fps, track, params,
                        nominal_lag_s=float(render_json.get("camera_start_offset_s", 0.0) or 0.0))
     metrics.update({
-        "method": args.method, "scenario": args.scenario,
+        "method": args.method, "scenario": args.scenario, "group": args.group or args.scenario,
+        "seed": sim_json.get("seed"),
         "inputs": {"sensor": args.sensor, "sim_json": args.sim_json, "truth": args.truth,
                    "render_json": args.render_json, "track": args.track},
         "conventions": "error = measured - reference, world x sign, mm unless the key says px; "
@@ -174,6 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name in ("sensor", "sim-json", "truth", "render-json", "track", "method", "scenario", "out"):
         ev.add_argument(f"--{name}", required=True)
     ev.add_argument("--config", help="merged scenario config.yaml (reads its `analysis` section)")
+    ev.add_argument("--group", help="the scenario this run is a seed replicate of (default: --scenario)")
     ev.add_argument("--max-lag-s", type=float, help=f"sync search window (default {DEFAULTS['max_lag_s']})")
     ev.set_defaults(func=cmd_evaluate)
 

@@ -13,7 +13,7 @@ from refflow.io import atomic_path
 from .readers import read_json
 
 SUMMARY_COLUMNS = (
-    "scenario", "method", "rmse_mm", "rmse_px", "rmse_pct_of_max_ref", "max_disp_meas_mm",
+    "scenario", "method", "group", "seed", "rmse_mm", "rmse_px", "rmse_pct_of_max_ref", "max_disp_meas_mm",
     "max_disp_ref_mm", "max_disp_ref_1khz_mm", "max_disp_error_pct", "p2p_first_cycles_error_pct", "max_error_mm", "bias_mm", "drift_mm_per_s",
     "lowfreq_power_ratio", "mode1_amplitude_ratio", "mode1_meas_peak_hz", "mode3_expected_hz",
     "mode3_meas_peak_hz", "sync_lag_s", "sync_lag_error_ms", "valid_frac", "rmse_vs_truth_mm", "rmse_unoccluded_mm",
@@ -54,6 +54,72 @@ def write_summary_csv(rows: list[dict[str, Any]], out: str | os.PathLike[str]) -
             writer.writerow([_fmt(row.get(c), 6) for c in SUMMARY_COLUMNS])
 
 
+# What the seed-replicate block reports per method: (label, key, digits).
+SEED_COLUMNS = (
+    ("RMSE (mm)", "rmse_mm", 3),
+    ("RMSE / max. reference (%)", "rmse_pct_of_max_ref", 3),
+    ("Max. displacement error (%)", "max_disp_error_pct", 2),
+    ("First cycles p2p error (%)", "p2p_first_cycles_error_pct", 2),
+    ("Valid share", "valid_frac", 3),
+)
+
+
+def _spread(values: list[float], digits: int) -> str:
+    finite = [v for v in values if isinstance(v, (int, float)) and math.isfinite(v)]
+    if not finite:
+        return ""
+    mean = sum(finite) / len(finite)
+    if len(finite) == 1:
+        return _fmt(float(mean), digits)
+    return f"{_fmt(float(mean), digits)} [{_fmt(float(min(finite)), digits)}, {_fmt(float(max(finite)), digits)}]"
+
+
+def seed_groups(rows: list[dict[str, Any]]) -> dict[str, dict[str, list[dict[str, Any]]]]:
+    """``{group: {method: [rows]}}`` for the groups run with more than one seed."""
+    groups: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    for row in rows:
+        group = str(row.get("group") or row["scenario"])
+        groups.setdefault(group, {}).setdefault(str(row["method"]), []).append(row)
+    return {g: methods for g, methods in groups.items()
+            if len({str(r["scenario"]) for rs in methods.values() for r in rs}) > 1}
+
+
+def separated(rows_a: list[dict[str, Any]], rows_b: list[dict[str, Any]], key: str = "rmse_mm") -> bool:
+    """True when every seed of ``a`` has a lower ``key`` than every seed of ``b`` (ranges apart)."""
+    a = [r.get(key) for r in rows_a]
+    b = [r.get(key) for r in rows_b]
+    if not a or not b or any(not isinstance(v, (int, float)) or not math.isfinite(v) for v in a + b):
+        return False
+    return max(a) < min(b)
+
+
+def seeds_markdown(rows: list[dict[str, Any]]) -> list[str]:
+    """One block per scenario run with several seeds: each method's mean [min, max] over the
+    seeds, and which method beats which (by RMSE, only where the seeds' ranges do not overlap)."""
+    lines: list[str] = []
+    for group, methods in seed_groups(rows).items():
+        seeds = sorted({r.get("seed") for rs in methods.values() for r in rs}, key=lambda v: (v is None, v))
+        lines += [f"## {group}: {len(seeds)} seeds ({', '.join(str(s) for s in seeds)}), mean [min, max]", "",
+                  "| Method | Seeds | " + " | ".join(label for label, _, _ in SEED_COLUMNS) + " |",
+                  "|---|---|" + "---|" * len(SEED_COLUMNS)]
+        for method, group_rows in methods.items():
+            cells = [_spread([r.get(key) for r in group_rows], digits) for _, key, digits in SEED_COLUMNS]
+            lines.append(f"| {method} | {len(group_rows)} | " + " | ".join(cells) + " |")
+        names = sorted(methods, key=lambda m: sum(r.get("rmse_mm") or math.inf for r in methods[m]))
+        wins, ties = [], []
+        for i, a in enumerate(names):
+            for b in names[i + 1:]:
+                (wins if separated(methods[a], methods[b]) else ties).append((a, b))
+        lines.append("")
+        if wins:
+            lines.append("Beats (RMSE lower on every seed than the other's best): "
+                         + "; ".join(f"{a} < {b}" for a, b in wins) + ".")
+        if ties:
+            lines.append("Ranges overlap, no winner: " + "; ".join(f"{a} ~ {b}" for a, b in ties) + ".")
+        lines.append("")
+    return lines
+
+
 def summary_markdown(rows: list[dict[str, Any]]) -> str:
     """Table-1 style Markdown: one block per scenario, the reference sensor last."""
     cutoffs = sorted({_fmt((row.get("params") or {}).get("lowpass_hz"), 3) for row in rows} - {""})
@@ -63,6 +129,7 @@ def summary_markdown(rows: list[dict[str, Any]]) -> str:
              "synchronised). Maximum displacement: the largest excursion after the release, "
              "about the rest position (analysis.metrics); errors are over the valid frames "
              "(Valid share: the frames the method did not flag).", ""]
+    lines += seeds_markdown(rows)
     scenarios: dict[str, list[dict[str, Any]]] = {}
     for row in rows:
         scenarios.setdefault(str(row["scenario"]), []).append(row)

@@ -6,12 +6,43 @@ import re
 from refflow.config import deep_merge
 
 RESULTS = config.get("results_dir", "results")
-SCENARIOS = list(config["scenarios"])
 METHODS = list(config["methods"])
 
 
+def _replicates(scenarios):
+    """``{scenario: (group, seed)}``: a scenario with ``seeds: [a, b, c]`` runs once per seed
+    (fresh noise, texture and excitation draws), as ``NAME`` (seed a), ``NAME-seedb`` and
+    ``NAME-seedc``; the summary reports the group's mean and range. Without ``seeds``:
+    ``(NAME, None)``, the defaults' seed."""
+    out = {}
+    for name, cfg in scenarios.items():
+        seeds = cfg.get("seeds") or []
+        if not seeds:
+            out[name] = (name, None)
+        for i, seed in enumerate(seeds):
+            replicate = name if i == 0 else f"{name}-seed{int(seed)}"
+            if replicate in out or (i > 0 and replicate in scenarios):
+                raise ValueError(f"scenario {replicate!r} is both configured and a seed replicate of {name!r}")
+            out[replicate] = (name, int(seed))
+    return out
+
+
+REPLICATES = _replicates(config["scenarios"])
+SCENARIOS = list(REPLICATES)
+
+
 def scenario_config(scenario):
-    return deep_merge(config["defaults"], config["scenarios"][scenario])
+    group, seed = REPLICATES[scenario]
+    merged = deep_merge(config["defaults"], config["scenarios"][group])
+    merged.pop("seeds", None)
+    if seed is not None:
+        merged["seed"] = seed
+    return merged
+
+
+def scenario_group(wildcards):
+    """The configured scenario a seed replicate belongs to (itself without seeds)."""
+    return REPLICATES[wildcards.scenario][0]
 
 
 def scenario_config_json(wildcards):

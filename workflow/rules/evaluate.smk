@@ -11,6 +11,8 @@ rule evaluate:
         track=f"{RESULTS}/{{scenario}}/track/{{method}}.csv",
     output:
         f"{RESULTS}/{{scenario}}/metrics/{{method}}.json",
+    params:
+        group=scenario_group,
     conda:
         "../envs/refflow.yaml"
     benchmark:
@@ -21,7 +23,8 @@ rule evaluate:
         "python -m analysis evaluate --sensor {input.sensor} --sim-json {input.sim}"
         " --truth {input.truth} --render-json {input.render} --track {input.track}"
         " --config {input.config}"
-        " --method {wildcards.method} --scenario {wildcards.scenario} --out {output}"
+        " --method {wildcards.method} --scenario {wildcards.scenario} --group {params.group}"
+        " --out {output}"
         " > {log} 2>&1"
 
 
