@@ -94,7 +94,7 @@ def cmd_figures(args: argparse.Namespace) -> None:
     written = figures.make_all(
         sensor=args.sensor, truth=args.truth, tracks=_parse_tracks(args.track or []), out_dir=args.out_dir,
         sim_json=args.sim_json, render_json=args.render_json, video=args.video, mask=args.mask,
-        params=_analysis_params(args.config))
+        params=_analysis_params(args.config), klt_raw=args.klt_raw)
     for path in written:
         print(path)
 
@@ -194,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     t1.add_argument("--klt", default="klt", help="method name of KLT (default: klt)")
     t1.set_defaults(func=cmd_table1)
 
-    fi = sub.add_parser("figures", help="Fig. 6-10 style figures (PNG + SVG)")
+    fi = sub.add_parser("figures", help="Fig. 6-11 style figures (PNG + SVG)")
     fi.add_argument("--sensor", required=True)
     fi.add_argument("--truth", required=True)
     fi.add_argument("--track", action="append", help="[NAME=]PATH, repeatable")
@@ -202,6 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     fi.add_argument("--render-json")
     fi.add_argument("--video", help="video for Fig. 6/7 (first frame)")
     fi.add_argument("--mask", help="mask.png for Fig. 6")
+    fi.add_argument("--klt-raw", help="--raw-tracks file of a KLT run: Fig. 11 (what each feature reads)")
     fi.add_argument("--config")
     fi.add_argument("--out-dir", required=True)
     fi.set_defaults(func=cmd_figures)

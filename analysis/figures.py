@@ -5,6 +5,8 @@
 * ``fig8_time_histories``: each method against the reference, and the errors.
 * ``fig9_psd``: Welch PSDs (log scale) with the model's modes and their aliases.
 * ``fig10_occlusion``: displacement around the occlusion, occluded span shaded.
+* ``fig11_klt_features``: what each KLT feature reads (its gain against the truth), and
+  how the static background corners among them scale KLT's mean about the reference frame.
 """
 
 from __future__ import annotations
@@ -193,9 +195,106 @@ def fig_features(video: str | os.PathLike[str], mask_path: str | os.PathLike[str
     return written
 
 
+def klt_feature_gains(raw_tracks: str | os.PathLike[str], truth: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per KLT feature: its place, and the gain and offset of ``dx = gain * truth + offset``
+    fitted over the frames it was tracked (a static background corner has gain 0).
+
+    ``raw_tracks``: the ``--raw-tracks`` file of a sparse run (format in docs/formats.md).
+    """
+    with np.load(raw_tracks, allow_pickle=False) as data:
+        frame, dx = data["frame"], np.asarray(data["dx_px"], float)
+        x, y = np.asarray(data["x_px"], float), np.asarray(data["y_px"], float)
+    pos = {int(f): i for i, f in enumerate(truth["frame"])}
+    rows = np.array([pos.get(int(f), -1) for f in frame])
+    true_px = np.where(rows >= 0, truth["dx_px"][np.maximum(rows, 0)], np.nan)
+    gain, offset = np.full(x.size, np.nan), np.full(x.size, np.nan)
+    for j in range(x.size):
+        ok = np.isfinite(dx[:, j]) & np.isfinite(true_px)
+        if ok.sum() > 10 and np.ptp(true_px[ok]) > 0:
+            gain[j], offset[j] = np.polyfit(true_px[ok], dx[ok, j], 1)
+    return {"frame": frame, "dx_px": dx, "x_px": x, "y_px": y, "gain": gain, "offset": offset,
+            "truth_px": true_px}
+
+
+def fig_klt_features(raw_tracks: str | os.PathLike[str], truth: dict[str, np.ndarray], video: str | None,
+                     mask_path: str | None, mm_per_px: float, out_dir: Path, *,
+                     static_gain: float = 0.2) -> list[Path]:
+    """Where KLT's error comes from: the features it follows, the gain each one reads, and
+    the mean with and without the static (background) corners. The mean is an unweighted
+    average over features measured from the reference frame, so static corners scale it
+    about the reference's position, not about the structure's rest position."""
+    import cv2
+    g = klt_feature_gains(raw_tracks, truth)
+    static = np.abs(g["gain"]) < static_gain
+    moving = np.isfinite(g["gain"]) & ~static
+    with np.errstate(all="ignore"):
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean_all = np.nanmean(g["dx_px"], axis=1)
+            mean_moving = np.nanmean(g["dx_px"][:, moving], axis=1) if moving.any() else mean_all * np.nan
+    t = truth["time_s"][np.searchsorted(truth["frame"], g["frame"])]
+    true_px = g["truth_px"]
+    # Into the truth's datum (from rest) at the first 0.25 s, as Fig. 8 aligns each method.
+    first = np.isfinite(true_px) & (t <= t[0] + 0.25)
+    datum_all = float(np.nanmedian(true_px[first] - mean_all[first]))
+    datum_moving = float(np.nanmedian(true_px[first] - mean_moving[first]))
+    fig = plt.figure(figsize=(13, 8.5))
+    grid = fig.add_gridspec(2, 2, width_ratios=[1.0, 1.4])
+    ax_img = fig.add_subplot(grid[:, 0])
+    if video:
+        ax_img.imshow(_first_frame(video), cmap="gray", vmin=0, vmax=255)
+    if mask_path:
+        mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+        if mask is not None:
+            ax_img.contour(mask > 127, levels=[0.5], colors="cyan", linewidths=0.8)
+    sc = ax_img.scatter(g["x_px"], g["y_px"], c=g["gain"], cmap="viridis", vmin=0.0, vmax=1.1, s=40,
+                        edgecolors="white", linewidths=0.6)
+    ax_img.plot(g["x_px"][static], g["y_px"][static], "x", color="red", ms=9,
+                label=f"static corners: {int(static.sum())} of {g['x_px'].size}")
+    fig.colorbar(sc, ax=ax_img, shrink=0.6, label="feature gain (its dx / true dx)")
+    ax_img.legend(fontsize=8, loc="lower right")
+    ax_img.set_title("KLT features on the first frame (cyan: POI mask)")
+    ax_img.set_xlabel("image x (px)")
+    ax_img.set_ylabel("image y (px)")
+    ax_t = fig.add_subplot(grid[0, 1])
+    ax_t.plot(t, true_px * mm_per_px, color="black", lw=1.0, label="truth (image plane, from rest)")
+    ax_t.plot(t, (mean_all + datum_all) * mm_per_px, color="tab:red", lw=0.9,
+              label="KLT: mean of all features (as reported)")
+    ax_t.plot(t, (mean_moving + datum_moving) * mm_per_px, color="tab:blue", lw=0.9, ls="--",
+              label="KLT: mean without the static corners")
+    ax_t.axhline(0.0, color="0.6", lw=0.6)
+    ax_t.set_xlabel("camera time (s)")
+    ax_t.set_ylabel("displacement x (mm)")
+    ax_t.set_title("Both aligned to the truth over the first 0.25 s (the held pluck deflection)")
+    ax_t.legend(fontsize=8, loc="lower right")
+    ax_s = fig.add_subplot(grid[1, 1])
+    ok = np.isfinite(true_px) & np.isfinite(mean_all)
+    reference_px = float(np.nanmedian(true_px[first]))
+    ax_s.plot(true_px[ok] - reference_px, mean_all[ok], ".", ms=2, color="tab:red", label="all features")
+    ok_m = np.isfinite(true_px) & np.isfinite(mean_moving)
+    ax_s.plot(true_px[ok_m] - reference_px, mean_moving[ok_m], ".", ms=2, color="tab:blue",
+              label="without static corners")
+    for series, okk, color in ((mean_all, ok, "tab:red"), (mean_moving, ok_m, "tab:blue")):
+        if okk.sum() > 2:
+            slope = float(np.polyfit(true_px[okk] - reference_px, series[okk], 1)[0])
+            ax_s.plot([], [], color=color, label=f"slope {slope:.3f}")
+    span = (true_px[ok] - reference_px) if ok.any() else np.array([-1.0, 1.0])
+    lo, hi = float(np.min(span)), float(np.max(span))
+    ax_s.plot([lo, hi], [lo, hi], color="black", lw=0.8, label="1:1")
+    ax_s.axvline(-reference_px, color="0.5", lw=0.8, ls=":", label="rest position")
+    ax_s.set_xlabel("true displacement from the reference frame (px)")
+    ax_s.set_ylabel("KLT mean from the reference frame (px)")
+    ax_s.set_title("KLT's scale error pivots on the reference frame")
+    ax_s.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    return save(fig, out_dir, "fig11_klt_features")
+
+
 def make_all(*, sensor: str, truth: str, tracks: Sequence[tuple[str, str]], out_dir: str | os.PathLike[str],
              sim_json: str | None = None, render_json: str | None = None, video: str | None = None,
-             mask: str | None = None, params: dict[str, Any] | None = None) -> list[Path]:
+             mask: str | None = None, params: dict[str, Any] | None = None,
+             klt_raw: str | None = None) -> list[Path]:
     """Every figure the inputs allow; returns the written paths."""
     p = {**DEFAULTS, **(params or {})}
     out = Path(out_dir)
@@ -246,4 +345,6 @@ def make_all(*, sensor: str, truth: str, tracks: Sequence[tuple[str, str]], out_
         written += save(fig, out, "fig8_time_histories")
     if video:
         written += fig_features(video, mask, out)
+    if klt_raw:
+        written += fig_klt_features(klt_raw, tru, video, mask, mm_per_px, out)
     return written

@@ -217,3 +217,24 @@ def test_max_displacement_error_moves_with_scale_not_offset(tmp_path, scale, shi
     assert data["p2p_first_cycles_error_pct"] == pytest.approx(expected_pct, abs=0.2)
     # the swing after the release, not the hold: the first cycles' peak-to-peak is about twice it
     assert data["p2p_first_cycles_ref_mm"] > 1.5 * data["max_disp_ref_mm"]
+
+
+def test_klt_feature_gains_find_the_static_corners(scenario, tmp_path):
+    """Fig. 11's gains: a feature on the beam reads gain ~1, a background corner 0, and the
+    figure is written from a sparse run's --raw-tracks file."""
+    from analysis.figures import fig_klt_features, klt_feature_gains
+    from analysis.readers import read_truth
+
+    truth = read_truth(scenario["truth"])
+    true_px = truth["dx_px"] - truth["dx_px"][0]
+    rng = np.random.default_rng(5)
+    columns = [0.97 * true_px, 1.0 * true_px, np.zeros_like(true_px), 0.5 * true_px]
+    dx = np.stack([c + 0.02 * rng.normal(size=c.size) for c in columns], 1).astype(np.float32)
+    raw = tmp_path / "klt.npz"
+    np.savez(raw, frame=truth["frame"].astype(np.int64), dx_px=dx, dy_px=np.zeros_like(dx),
+             x_px=np.array([10, 20, 30, 40], np.float32), y_px=np.array([5, 5, 5, 5], np.float32))
+    gains = klt_feature_gains(raw, truth)
+    assert gains["gain"] == pytest.approx([0.97, 1.0, 0.0, 0.5], abs=0.01)
+    written = fig_klt_features(raw, truth, None, None, 1 / 2.8, tmp_path)
+    assert {p.name for p in written} == {"fig11_klt_features.png", "fig11_klt_features.svg"}
+    assert all(p.stat().st_size > 1000 for p in written)

@@ -200,8 +200,13 @@ KEY_FIGURES = [
 ]
 
 
+def key_figure_names():
+    """The key scenario's figures kept in git (Fig. 11 where that scenario runs KLT)."""
+    return KEY_FIGURES + (["fig11_klt_features"] if "klt" in scenario_methods(KEY_SCENARIO) else [])
+
+
 def key_figure_paths():
-    names = KEY_FIGURES + (["fig10_occlusion"] if OCCLUSION_SCENARIO else [])
+    names = key_figure_names() + (["fig10_occlusion"] if OCCLUSION_SCENARIO else [])
     return [f"{RESULTS}/figures/{name}.png" for name in names]
 
 

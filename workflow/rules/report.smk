@@ -14,6 +14,9 @@ rule scenario_figures:
             f"{RESULTS}/{wc.scenario}/track/{{method}}.csv",
             method=scenario_methods(wc.scenario),
         ),
+        klt_raw=lambda wc: (
+            [f"{RESULTS}/{wc.scenario}/track/klt.npz"] if "klt" in scenario_methods(wc.scenario) else []
+        ),
     output:
         report(
             directory(f"{RESULTS}/{{scenario}}/figures"),
@@ -24,6 +27,7 @@ rule scenario_figures:
         ),
     params:
         track_args=lambda wc, input: " ".join(f"--track {t}" for t in input.tracks),
+        klt_args=lambda wc, input: " ".join(f"--klt-raw {t}" for t in input.klt_raw),
     conda:
         "../envs/refflow.yaml"
     benchmark:
@@ -33,7 +37,7 @@ rule scenario_figures:
     shell:
         "python -m analysis figures --sensor {input.sensor} --sim-json {input.sim}"
         " --truth {input.truth} --render-json {input.render} --video {input.video}"
-        " --mask {input.mask} --config {input.config} {params.track_args}"
+        " --mask {input.mask} --config {input.config} {params.track_args} {params.klt_args}"
         " --out-dir {output} > {log} 2>&1"
 
 
@@ -49,7 +53,7 @@ rule key_figures:
             for path in key_figure_paths()
         ],
     params:
-        names=KEY_FIGURES,
+        names=key_figure_names(),
         out_dir=lambda wildcards, output: os.path.dirname(output[0]),
     conda:
         "../envs/refflow.yaml"

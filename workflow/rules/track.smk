@@ -57,6 +57,8 @@ rule track:
     output:
         csv=f"{RESULTS}/{{scenario}}/track/{{method}}.csv",
         sidecar=f"{RESULTS}/{{scenario}}/track/{{method}}.json",
+        # every feature's track: Fig. 11 shows what each one reads
+        raw=f"{RESULTS}/{{scenario}}/track/{{method}}.npz",
     wildcard_constraints:
         method=methods_of_kind("sparse"),
     params:
@@ -72,4 +74,4 @@ rule track:
     shell:
         "refflow track {input.video} --mask {input.mask} --method {wildcards.method}"
         " {params.measure} {params.setup} --scale-file {input.scale} {params.filters}"
-        " --out {output.csv} --no-progress > {log} 2>&1"
+        " --out {output.csv} --raw-tracks {output.raw} --no-progress > {log} 2>&1"
