@@ -298,7 +298,23 @@ def _output_names(args: argparse.Namespace) -> list[Path]:
         + ([Path(args.out).with_suffix(".json"), Path(args.out)] if args.out else [])
     if len({name.resolve() for name in names}) != len(names):
         raise InputError(f"two outputs share a name ({', '.join(map(str, names))}): give each its own file")
+    inputs = {path.resolve(): option for option, path in _input_paths(args)}
+    for name in names:
+        if name.resolve() in inputs:
+            raise InputError(f"output {name} is the run's input ({inputs[name.resolve()]}): refflow never "
+                             "writes over an input; choose another --out (the sidecar is <out>.json)")
     return names
+
+
+def _input_paths(args: argparse.Namespace) -> list[tuple[str, Path]]:
+    """``(option, path)`` of every file the run reads (outputs must not be one of them)."""
+    found: list[tuple[str, Path]] = []
+    for option in ("input", "mask", "calibration", "scale_file", "background_mask", "video_origin"):
+        value = getattr(args, option, None)
+        if isinstance(value, str) and value and Path(value).exists():
+            found.append(("the video" if option == "input" else "--" + option.replace("_", "-"), Path(value)))
+    found += [("a part", Path(part)) for part in getattr(args, "parts", None) or []]
+    return found
 
 
 def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], notes: list[str],

@@ -512,6 +512,24 @@ def test_outputs_sharing_a_name_are_refused_before_tracking(clip, tmp_path, caps
     assert list(tmp_path.iterdir()) == []
 
 
+def test_an_output_never_overwrites_an_input(clip, tmp_path, capsys) -> None:
+    """--out on the video, or a sidecar (<out>.json) on the scale file: refused before any
+    work, the input untouched."""
+    video = tmp_path / "v.mp4"
+    video.write_bytes(clip["video"].read_bytes())
+    scale = tmp_path / "s.json"
+    scale.write_text('{"mm_per_px": 0.5}')
+    before = {p: p.read_bytes() for p in (video, scale)}
+    for extra in (["--out", str(video)], ["--scale-file", str(scale), "--out", str(tmp_path / "s.csv")],
+                  ["--scale-file", str(scale), "--raw-tracks", str(scale)]):
+        assert main(["track", str(video), "--rect", "20,20,40,30", "--method", "dis", *extra,
+                     "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert "never writes over an input" in err and len(err.strip().splitlines()) == 1, err
+    assert {p: p.read_bytes() for p in (video, scale)} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.json", "v.mp4"]
+
+
 def test_reference_average_of_frames_at_rest(tmp_path) -> None:
     """A key frame that differs from the frames after it (as a codec's first I-frame does)
     biases every measurement against it; a reference averaged over the frames at rest does not."""
