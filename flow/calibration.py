@@ -228,7 +228,8 @@ def point_undistorter(calibration: dict[str, Any] | None) -> Callable[[np.ndarra
 
 
 def scale_from_known_length(length_mm: float, between: str,
-                            undistort_points: Callable[[np.ndarray], np.ndarray] | None = None) -> float:
+                            undistort_points: Callable[[np.ndarray], np.ndarray] | None = None, *,
+                            frame_size: tuple[int, int] | None = None) -> float:
     """mm per pixel from a known length between two image points ``X1,Y1,X2,Y2``.
 
     The points are raw video pixels; with ``undistort_points`` (a calibration's
@@ -241,6 +242,14 @@ def scale_from_known_length(length_mm: float, between: str,
         x1, y1, x2, y2 = (float(v) for v in between.split(","))
     except ValueError:
         raise InputError(f"--between {between!r} is not X1,Y1,X2,Y2 (pixel coordinates)") from None
+    if not all(math.isfinite(v) for v in (x1, y1, x2, y2)):
+        raise InputError(f"--between {between!r} holds a NaN or infinite coordinate: pass four pixel "
+                         "coordinates X1,Y1,X2,Y2")
+    if frame_size is not None:
+        width, height = frame_size
+        if not all(0 <= x <= width and 0 <= y <= height for x, y in ((x1, y1), (x2, y2))):
+            raise InputError(f"--between {between!r} lies outside the {width}x{height} video frame: "
+                             "click both points on the frame (raw video pixels)")
     if undistort_points is not None:
         (x1, y1), (x2, y2) = undistort_points(np.array([[x1, y1], [x2, y2]]))
     distance_px = math.hypot(x2 - x1, y2 - y1)

@@ -204,7 +204,7 @@ def cmd_methods(args: argparse.Namespace) -> int:
     return 0
 
 
-def _scale_from_file(path: str, undistort_points: Any) -> tuple[float, str]:
+def _scale_from_file(path: str, undistort_points: Any, frame_size: tuple[int, int] | None) -> tuple[float, str]:
     """``(mm_per_px, how)`` from a JSON file: its ``mm_per_px``, or a known length
     ``known_length_mm`` between two raw video points ``between_px`` [X1, Y1, X2, Y2]
     (measured in the undistorted image with a calibration, like --known-length)."""
@@ -226,11 +226,11 @@ def _scale_from_file(path: str, undistort_points: Any) -> tuple[float, str]:
             raise InputError(f"scale file {path}: 'known_length_mm' needs a number and 'between_px' "
                              f"four numbers X1,Y1,X2,Y2, got {length!r} and {between!r}")
         text = ",".join(f"{float(v):.6f}" for v in between)
-        mm_per_px = scale_from_known_length(float(length), text, undistort_points)
+        mm_per_px = scale_from_known_length(float(length), text, undistort_points, frame_size=frame_size)
         where = " (undistorted)" if undistort_points is not None else ""
         return mm_per_px, f"known length {length} mm between {text} from {path}{where}"
     value = data.get("mm_per_px")
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 < value < math.inf:
         raise InputError(f"scale file {path} needs a positive number under 'mm_per_px' (or "
                          f"'known_length_mm' and 'between_px'), got {value!r}")
     return float(value), f"mm_per_px from {path}"
@@ -247,7 +247,8 @@ def _check_scale_options(args: argparse.Namespace) -> None:
         raise InputError("--known-length needs --between X1,Y1,X2,Y2 (and vice versa)")
 
 
-def _scale(args: argparse.Namespace, calibration: dict[str, Any] | None) -> tuple[float, str]:
+def _scale(args: argparse.Namespace, calibration: dict[str, Any] | None,
+           frame_size: tuple[int, int] | None) -> tuple[float, str]:
     """``(mm_per_px, how)``; NaN when no scale was given (mm columns are then NaN).
 
     ``calibration``: the run's calibration summary (``_calibration_summary``, also what a
@@ -259,9 +260,10 @@ def _scale(args: argparse.Namespace, calibration: dict[str, Any] | None) -> tupl
 
     undistort_points = point_undistorter(calibration)
     if args.scale_file is not None:
-        return _scale_from_file(args.scale_file, undistort_points)
+        return _scale_from_file(args.scale_file, undistort_points, frame_size)
     if args.known_length is not None:
-        mm_per_px = scale_from_known_length(args.known_length, args.between, undistort_points)
+        mm_per_px = scale_from_known_length(args.known_length, args.between, undistort_points,
+                                            frame_size=frame_size)
         where = " (undistorted)" if undistort_points is not None else ""
         return mm_per_px, f"known length {args.known_length} mm between {args.between}{where}"
     if args.mm_per_px is not None:
@@ -434,7 +436,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     source = _open(args)
     undistort, calibration = _undistorter(args, source)
     calibration_info = _calibration_summary(args, calibration)
-    mm_per_px, scale_source = _scale(args, calibration_info)
+    mm_per_px, scale_source = _scale(args, calibration_info, tuple(source.size))
     mask = _mask_for(args, source, undistort)
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
     background = _background_for(args, source, undistort, mask)
@@ -507,7 +509,7 @@ def cmd_merge(args: argparse.Namespace) -> int:
     first = metas[0]
     # The parts were measured undistorted: the scale points are carried through the same
     # calibration, exactly as `track` does (one code path, _scale).
-    mm_per_px, scale_source = _scale(args, first["calibration"])
+    mm_per_px, scale_source = _scale(args, first["calibration"], tuple(first["input"]["frame_size"]))
     notes = [note for meta in metas for note in meta.get("notes", []) if "no scale given" not in note]
     if scale_source.startswith("none"):
         notes.append("no scale given: pass --mm-per-px or --known-length/--between for mm")

@@ -49,6 +49,8 @@ import cv2
 import numpy as np
 from numba import njit
 
+from flow.params import check_fields
+
 ATOMIC = 4  # atomic patch side in (downscaled) pixels
 N_ORIENT = 8
 
@@ -94,6 +96,9 @@ class MatchParams:
     reciprocal: bool = True
     reciprocal_tol: float = 3.0
     min_score: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def search_radius(params: MatchParams, shape: tuple[int, ...]) -> float:

@@ -43,6 +43,8 @@ import cv2
 import numpy as np
 from numba import njit
 
+from flow.params import check_fields
+
 
 @dataclass(frozen=True)
 class VariationalParams:
@@ -90,6 +92,9 @@ class VariationalParams:
     match_max_scale: float = 0.5
     contrast_std: float = 0.15
     edge_sigma: float = 2.0
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 # Packed red-black layout

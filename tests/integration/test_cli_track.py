@@ -73,6 +73,7 @@ def make_bad_videos(folder: Path) -> None:
     (folder / "no_index.mp4").write_bytes(data[: len(data) // 2])
     (folder / "not_a_video.mp4").write_text("this is not a video\n")
     (folder / "empty.avi").write_bytes(b"")
+    (folder / "inf_scale.json").write_text('{"mm_per_px": Infinity}')
 
 
 @pytest.fixture(scope="module")
@@ -259,6 +260,16 @@ BAD = {
     "frame range for klt": (["{video}", "--mask", "{mask}", "--method", "klt", "--frames", "0:5"],
                             "--frames needs a reference-frame (dense) method"),
     "reference beyond the end": (["{video}", "--mask", "{mask}", "--reference-frame", "99"], "beyond the 30"),
+    "infinite scale point": (["{video}", "--mask", "{mask}", "--known-length", "5", "--between", "1,1,inf,5"],
+                             "holds a NaN or infinite coordinate"),
+    "NaN scale point": (["{video}", "--mask", "{mask}", "--known-length", "5", "--between", "1,1,nan,5"],
+                        "NaN or infinite coordinate"),
+    "scale point off the frame": (["{video}", "--mask", "{mask}", "--known-length", "5", "--between",
+                                   "1,1,5000,5"], "lies outside the 160x120 video frame"),
+    "infinite scale in file": (["{video}", "--mask", "{mask}", "--scale-file", "{folder}/inf_scale.json"],
+                               "needs a positive number under 'mm_per_px'"),
+    "non-numeric method parameter": (["{video}", "--mask", "{mask}", "--method", "deepflow", "--param",
+                                      "alpha=abc"], "parameter alpha must be a finite number, got 'abc'"),
 }
 
 
