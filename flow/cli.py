@@ -592,7 +592,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
 def _add_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="video file (any format OpenCV reads) or folder of images")
     p.add_argument("--roi", help="crop X,Y,W,H in raw full-frame pixels (4K frames are never processed whole)")
-    p.add_argument("--fps", type=float, help="frame rate of an image folder (required there; videos: from the file)")
+    p.add_argument("--fps", type=float, help="frame rate of an image folder (required there); on a video, the capture rate where it "
+                   "differs from the file's playback rate (slow motion, high-speed export): time_s follows it")
     p.add_argument("--calibration", help="calibration JSON from `refflow calibrate`: frames are undistorted, "
                    "and the mask/--rect/--polygon/--between drawn on raw frames are carried along")
     p.add_argument("--video-origin", metavar="X,Y", help="the video is a window of the calibrated sensor "

@@ -191,6 +191,7 @@ class FrameSource:
         self.frames_read = 0
         self.truncated = False
         self.notes: list[str] = []
+        self._time_scale = 1.0  # capture time per second of the file's timeline
         self.header_fps = float("nan")
         if self.is_folder:
             self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -215,6 +216,12 @@ class FrameSource:
             header_fps = cap.get(cv2.CAP_PROP_FPS)
             self.header_fps = header_fps if header_fps and header_fps > 0 else float("nan")
             self.fps = float(fps) if fps else self.header_fps
+            # --fps on a video is the capture rate (a slow-motion or high-speed recording
+            # played back at the file's rate): the file's timeline is rescaled to it.
+            if fps and math.isfinite(self.header_fps) and abs(self.fps / self.header_fps - 1) > 1e-3:
+                self._time_scale = self.header_fps / self.fps
+                self.notes.append(f"--fps {self.fps:g} overrides the file's {self.header_fps:g} fps: time_s is "
+                                  f"the file's timeline x {self._time_scale:.6g} (capture rate, e.g. slow motion)")
             self.header_frames = max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
             ok, first = cap.read()
             cap.release()
@@ -277,7 +284,7 @@ class FrameSource:
             return index / self.fps
         if index == 0 and msec <= 0:
             return 0.0
-        return msec / 1000.0
+        return self._time_scale * msec / 1000.0
 
     def _iter_video(self, start: int, stop: int | None) -> Iterator[tuple[int, float, np.ndarray]]:
         cap = cv2.VideoCapture(str(self.path))
@@ -308,6 +315,7 @@ class FrameSource:
         """After the last decodable frame: truncated file, or only a header estimate?"""
         if not self.header_frames or self.frames_read >= self.header_frames:
             return
+        times = times / self._time_scale  # back on the file's own timeline
         steps = np.diff(times)
         steps = steps[steps > 0]
         step = float(np.median(steps)) if steps.size else 1.0 / self.header_fps

@@ -541,6 +541,21 @@ def test_an_output_never_overwrites_an_input(clip, tmp_path, capsys) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.json", "v.mp4"]
 
 
+def test_fps_on_a_video_is_the_capture_rate(clip, tmp_path) -> None:
+    """A slow-motion clip (240 fps captured, 30 fps in the file): --fps 240 puts time_s on
+    the capture's clock, says so in the sidecar, and the file is still complete."""
+    out = tmp_path / "slow.csv"
+    assert main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--fps", "240",
+                 "--out", str(out), "--no-progress"]) == 0
+    time_s = np.array([float(r["time_s"]) for r in read_csv(out)])
+    # (Matroska stores milliseconds: 33 or 34 ms a frame in the file, 1/8 of it here)
+    assert np.allclose(np.diff(time_s), 1 / 240, atol=0.001 / 8 + 1e-9)
+    assert time_s[-1] == pytest.approx((len(time_s) - 1) / 240, abs=0.001)
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert any("overrides the file's 30 fps" in note for note in meta["notes"])
+    assert meta["input"]["fps"] == 240 and not meta["input"]["truncated"]
+
+
 def test_reference_average_of_frames_at_rest(tmp_path) -> None:
     """A key frame that differs from the frames after it (as a codec's first I-frame does)
     biases every measurement against it; a reference averaged over the frames at rest does not."""
