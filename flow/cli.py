@@ -690,11 +690,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(BaseException):
+    """SIGTERM (what `timeout`, SLURM and `kill` send), raised where the run is, so that
+    every ``finally`` and all-or-nothing output set cleans up as on Ctrl-C."""
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise Terminated()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    import signal
+    import threading
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return args.func(args)
+    except Terminated:
+        print(f"refflow {args.command}: terminated (SIGTERM); no output written", file=sys.stderr)
+        return 143
     except InputError as err:
         print(f"refflow {args.command}: error: {err}", file=sys.stderr)
         return EXIT_USAGE
@@ -706,6 +724,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"refflow {args.command}: interrupted; no output written", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -421,6 +421,49 @@ def test_ctrl_c_during_tracking_leaves_nothing(clip, tmp_path, monkeypatch, caps
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("when", ["tracking", "writing"])
+def test_sigterm_leaves_nothing(clip, tmp_path, monkeypatch, capsys, when) -> None:
+    """SIGTERM (timeout, SLURM, kill) while frames are measured or while the outputs are
+    written: exit 143, and neither outputs nor hidden temporaries (.part, POI stores) stay."""
+    import os
+    import signal
+
+    from flow import registry, track
+
+    if when == "tracking":
+        real_get = registry.get_method
+        calls = {"n": 0}
+
+        def terminated(name, **params):
+            method = real_get(name, **params)
+            real_calc = method.calc
+
+            def calc(reference, current):
+                calls["n"] += 1
+                if calls["n"] == 6:
+                    os.kill(os.getpid(), signal.SIGTERM)
+                return real_calc(reference, current)
+
+            method.calc = calc
+            return method
+
+        monkeypatch.setattr(registry, "get_method", terminated)
+    else:
+        real_write = track.write_npz
+
+        def write_then_terminated(path, arrays, **kwargs):
+            real_write(path, arrays, **kwargs)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+        monkeypatch.setattr(track, "write_npz", write_then_terminated)
+    rc = main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--jobs", "2",
+               "--out", str(tmp_path / "out.csv"), "--save-poi-tracks", str(tmp_path / "p.npz"),
+               "--raw-tracks", str(tmp_path / "raw.npz"), "--no-progress"])
+    assert rc == 143 and "terminated (SIGTERM); no output written" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # handler restored
+
+
 def _numbers(path: Path) -> np.ndarray:
     return np.array([[float(v) for v in row.values()] for row in read_csv(path)])
 
