@@ -63,10 +63,31 @@ class Roi:
         return {"x": self.x, "y": self.y, "width": self.width, "height": self.height}
 
 
-def to_grey(image: np.ndarray) -> np.ndarray:
-    """Grey uint8 view of a decoded frame (BGR, BGRA, grey or 16-bit)."""
+# 16-bit images are mapped to 8 bits by one gain for the whole sequence, taken from the
+# first image: its 99.9th percentile lands here, leaving headroom for brighter frames.
+DEEP_TARGET_LEVEL = 204.0
+
+
+def deep_image_gain(image: np.ndarray) -> float:
+    """The constant gain that maps a 16-bit sequence whose first image is ``image`` to 8 bits.
+
+    High-speed cameras store 10-14-bit data in 16-bit words, often far below full scale: a
+    fixed ``>> 8`` would leave an underexposed 10-bit clip (values 20-250) at 0-0 grey.
+    """
+    level = float(np.percentile(image, 99.9)) if image.size else 0.0
+    return DEEP_TARGET_LEVEL / max(level, 1.0)
+
+
+def to_grey(image: np.ndarray, gain: float | None = None) -> np.ndarray:
+    """Grey uint8 view of a decoded frame (BGR, BGRA, grey or 16-bit).
+
+    ``gain``: the sequence's 16-bit to 8-bit gain (:func:`deep_image_gain`); None: ``>> 8``.
+    """
     if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
+        if gain is None:
+            image = (image >> 8).astype(np.uint8)
+        else:
+            image = np.clip(np.rint(image.astype(np.float32) * np.float32(gain)), 0, 255).astype(np.uint8)
     elif image.dtype != np.uint8:
         image = np.clip(image, 0, 255).astype(np.uint8)
     if image.ndim == 3:
@@ -192,6 +213,7 @@ class FrameSource:
         self.truncated = False
         self.notes: list[str] = []
         self._time_scale = 1.0  # capture time per second of the file's timeline
+        self._deep_gain: float | None = None  # 16-bit images: their constant gain to 8 bits
         self.header_fps = float("nan")
         if self.is_folder:
             self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -206,6 +228,10 @@ class FrameSource:
             self.height, self.width = first.shape[:2]
             self.fps = float(fps) if fps else float("nan")
             self.header_frames = len(self._files)
+            if first.dtype == np.uint16:
+                self._deep_gain = deep_image_gain(first)
+                self.notes.append(f"16-bit images: grey = value x {self._deep_gain:.6g} for every frame (the "
+                                  f"first image's 99.9th percentile -> {DEEP_TARGET_LEVEL:g} of 255)")
         else:
             quiet_decoder_logs()
             cap = cv2.VideoCapture(str(self.path))
@@ -244,7 +270,7 @@ class FrameSource:
     def _crop(self, image: np.ndarray) -> np.ndarray:
         r = self.roi
         # Crop before the colour conversion so 4K frames are never converted whole.
-        return to_grey(np.ascontiguousarray(image[r.y:r.y + r.height, r.x:r.x + r.width]))
+        return to_grey(np.ascontiguousarray(image[r.y:r.y + r.height, r.x:r.x + r.width]), self._deep_gain)
 
     def __iter__(self) -> Iterator[tuple[int, float, np.ndarray]]:
         return self.frames()

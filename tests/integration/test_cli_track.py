@@ -584,6 +584,27 @@ def test_an_output_never_overwrites_an_input(clip, tmp_path, capsys) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.json", "v.mp4"]
 
 
+@pytest.mark.parametrize("low, high", [(20, 250), (0, 4095), (3000, 60000)])
+def test_16_bit_images_keep_their_detail(tmp_path, low, high) -> None:
+    """High-speed exports: 10-16-bit data in 16-bit images, often far below full scale (an
+    underexposed 10-bit clip spans 20-250). One gain for the sequence keeps the texture; a
+    fixed >> 8 would read this 1.5 px shift as 0."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    shifts = [0.0, 0.5, 1.0, 1.5]
+    for i, shift in enumerate(shifts):
+        image = texture(shift)  # about 83-173
+        scaled = low + (image - 83.0) / 90.0 * (high - low)
+        cv2.imwrite(str(folder / f"f{i}.png"), np.clip(np.rint(scaled), 0, 65535).astype(np.uint16))
+    out = tmp_path / "o.csv"
+    assert main(["track", str(folder), "--fps", "1000", "--rect", "40,30,80,60", "--method", "dis",
+                 "--out", str(out), "--no-progress"]) == 0
+    dx = np.array([float(r["dx_px"]) for r in read_csv(out)])
+    assert np.allclose(dx, shifts, atol=0.1), dx
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert any(note.startswith("16-bit images: grey = value x") for note in meta["notes"])
+
+
 def test_fps_on_a_video_is_the_capture_rate(clip, tmp_path) -> None:
     """A slow-motion clip (240 fps captured, 30 fps in the file): --fps 240 puts time_s on
     the capture's clock, says so in the sidecar, and the file is still complete."""
