@@ -438,6 +438,12 @@ def cmd_track(args: argparse.Namespace) -> int:
     calibration_info = _calibration_summary(args, calibration)
     mm_per_px, scale_source = _scale(args, calibration_info, tuple(source.size))
     mask = _mask_for(args, source, undistort)
+    outside = poi.pixels_outside_roi(args.mask, frame_size=source.size, roi=source.roi) if args.mask else 0
+    if outside:
+        message = (f"--roi {source.roi.as_text()} leaves {outside} of the mask's pixels out: only the mask inside "
+                   "the ROI is measured (widen --roi to measure all of it)")
+        notes.append(message)
+        print(f"refflow track: warning: {message}", file=sys.stderr)
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
     background = _background_for(args, source, undistort, mask)
     # The per-POI store goes beside the output: a real disk, unlike a memory-backed /tmp.
@@ -466,7 +472,7 @@ def cmd_track(args: argparse.Namespace) -> int:
         notes.append("no scale given: pass --mm-per-px or --known-length/--between for mm")
     roi = source.roi
     poi_info = {"count": int(len(tracks.x_px)), "source": "features" if sparse else "mask",
-                "mask_pixels": int(mask.sum()), "grid_step": args.grid_step}
+                "mask_pixels": int(mask.sum()), "mask_pixels_outside_roi": outside, "grid_step": args.grid_step}
     background_info = None if background is None else {
         "source": args.background_mask or f"rect {args.background_rect}", "points": int(len(background.xy)),
         "model": background.model, "requested_model": args.background_model}
@@ -550,6 +556,12 @@ def cmd_pois(args: argparse.Namespace) -> int:
     source = _open(args, need_time=False)
     undistort, _ = _undistorter(args, source)
     mask = _mask_for(args, source, undistort)
+    outside = poi.pixels_outside_roi(args.mask, frame_size=source.size, roi=source.roi) if args.mask else 0
+    if outside:
+        message = (f"--roi {source.roi.as_text()} leaves {outside} of the mask's pixels out: only the mask inside "
+                   "the ROI is measured (widen --roi to measure all of it)")
+        notes.append(message)
+        print(f"refflow track: warning: {message}", file=sys.stderr)
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
     reference = read_reference(source, args.reference_frame, undistort, args.reference_average)
     corners = KLT(detector=args.detector).detect(reference)

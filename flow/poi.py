@@ -32,6 +32,15 @@ def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: 
     return image > 127
 
 
+def pixels_outside_roi(path: str | Path, *, frame_size: tuple[int, int], roi: Roi) -> int:
+    """How many of a full-frame mask's pixels the ROI leaves out (0 for an ROI-sized mask)."""
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None or (image.shape[1], image.shape[0]) != tuple(frame_size):
+        return 0
+    inside = image[roi.y:roi.y + roi.height, roi.x:roi.x + roi.width] > 127
+    return int((image > 127).sum() - inside.sum())
+
+
 def rect_mask(text: str, *, roi: Roi) -> np.ndarray:
     """Mask of the rectangle ``X,Y,W,H`` given in full-frame pixels."""
     try:

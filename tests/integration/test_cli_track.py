@@ -605,6 +605,18 @@ def test_16_bit_images_keep_their_detail(tmp_path, low, high) -> None:
     assert any(note.startswith("16-bit images: grey = value x") for note in meta["notes"])
 
 
+def test_a_mask_cut_by_the_roi_is_reported(clip, tmp_path, capsys) -> None:
+    """A full-frame mask that --roi cuts: the run says how much of it is left out, in the
+    console and the sidecar, instead of silently measuring the rest."""
+    out = tmp_path / "o.csv"
+    assert main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--roi", "0,0,80,120",
+                 "--method", "dis", "--out", str(out), "--no-progress"]) == 0
+    assert "leaves 1680 of the mask's pixels out" in capsys.readouterr().err
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["poi"]["mask_pixels_outside_roi"] == 1680 and meta["poi"]["mask_pixels"] == 24 * 70
+    assert any("widen --roi" in note for note in meta["notes"])
+
+
 def test_fps_on_a_video_is_the_capture_rate(clip, tmp_path) -> None:
     """A slow-motion clip (240 fps captured, 30 fps in the file): --fps 240 puts time_s on
     the capture's clock, says so in the sidecar, and the file is still complete."""
