@@ -131,6 +131,19 @@ def _mask_for(args: argparse.Namespace, source: FrameSource, undistort: Any) -> 
     return undistort.map_mask(mask) if undistort is not None else mask
 
 
+def _mask_cut_by_roi(args: argparse.Namespace, source: FrameSource, notes: list[str]) -> int:
+    """Pixels of a full-frame --mask that --roi leaves out; warns (and notes) when any."""
+    from flow import poi
+
+    outside = poi.pixels_outside_roi(args.mask, frame_size=source.size, roi=source.roi) if args.mask else 0
+    if outside:
+        message = (f"--roi {source.roi.as_text()} leaves {outside} of the mask's pixels out: only the mask "
+                   "inside the ROI is measured (widen --roi to measure all of it)")
+        notes.append(message)
+        print(f"refflow {args.command}: warning: {message}", file=sys.stderr)
+    return outside
+
+
 def _background_for(args: argparse.Namespace, source: FrameSource, undistort: Any,
                     poi_mask: np.ndarray) -> Any:
     """The static points of --background-mask/--background-rect (None without them)."""
@@ -438,12 +451,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     calibration_info = _calibration_summary(args, calibration)
     mm_per_px, scale_source = _scale(args, calibration_info, tuple(source.size))
     mask = _mask_for(args, source, undistort)
-    outside = poi.pixels_outside_roi(args.mask, frame_size=source.size, roi=source.roi) if args.mask else 0
-    if outside:
-        message = (f"--roi {source.roi.as_text()} leaves {outside} of the mask's pixels out: only the mask inside "
-                   "the ROI is measured (widen --roi to measure all of it)")
-        notes.append(message)
-        print(f"refflow track: warning: {message}", file=sys.stderr)
+    outside = _mask_cut_by_roi(args, source, notes)
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
     background = _background_for(args, source, undistort, mask)
     # The per-POI store goes beside the output: a real disk, unlike a memory-backed /tmp.
@@ -556,12 +564,7 @@ def cmd_pois(args: argparse.Namespace) -> int:
     source = _open(args, need_time=False)
     undistort, _ = _undistorter(args, source)
     mask = _mask_for(args, source, undistort)
-    outside = poi.pixels_outside_roi(args.mask, frame_size=source.size, roi=source.roi) if args.mask else 0
-    if outside:
-        message = (f"--roi {source.roi.as_text()} leaves {outside} of the mask's pixels out: only the mask inside "
-                   "the ROI is measured (widen --roi to measure all of it)")
-        notes.append(message)
-        print(f"refflow track: warning: {message}", file=sys.stderr)
+    _mask_cut_by_roi(args, source, [])
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
     reference = read_reference(source, args.reference_frame, undistort, args.reference_average)
     corners = KLT(detector=args.detector).detect(reference)
