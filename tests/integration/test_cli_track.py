@@ -393,27 +393,35 @@ def test_failed_poi_tracks_leave_no_csv(clip, tmp_path, monkeypatch) -> None:
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("jobs", ["1", "2"])
-def test_ctrl_c_during_tracking_leaves_nothing(clip, tmp_path, monkeypatch, capsys, jobs) -> None:
+def _at_sixth_frame(monkeypatch, action) -> None:
+    """Every method built from now on calls ``action()`` when its sixth frame is measured."""
     from flow import registry
 
     real_get = registry.get_method
     calls = {"n": 0}
 
-    def interrupted(name, **params):
+    def wrapped(name, **params):
         method = real_get(name, **params)
         real_calc = method.calc
 
         def calc(reference, current):
             calls["n"] += 1
             if calls["n"] == 6:
-                raise KeyboardInterrupt
+                action()
             return real_calc(reference, current)
 
         method.calc = calc
         return method
 
-    monkeypatch.setattr(registry, "get_method", interrupted)
+    monkeypatch.setattr(registry, "get_method", wrapped)
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_ctrl_c_during_tracking_leaves_nothing(clip, tmp_path, monkeypatch, capsys, jobs) -> None:
+    def interrupt() -> None:
+        raise KeyboardInterrupt
+
+    _at_sixth_frame(monkeypatch, interrupt)
     rc = main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--jobs", jobs,
                "--out", str(tmp_path / "out.csv"), "--save-poi-tracks", str(tmp_path / "p.npz"),
                "--raw-tracks", str(tmp_path / "raw.npz"), "--no-progress"])
@@ -428,26 +436,10 @@ def test_sigterm_leaves_nothing(clip, tmp_path, monkeypatch, capsys, when) -> No
     import os
     import signal
 
-    from flow import registry, track
+    from flow import track
 
     if when == "tracking":
-        real_get = registry.get_method
-        calls = {"n": 0}
-
-        def terminated(name, **params):
-            method = real_get(name, **params)
-            real_calc = method.calc
-
-            def calc(reference, current):
-                calls["n"] += 1
-                if calls["n"] == 6:
-                    os.kill(os.getpid(), signal.SIGTERM)
-                return real_calc(reference, current)
-
-            method.calc = calc
-            return method
-
-        monkeypatch.setattr(registry, "get_method", terminated)
+        _at_sixth_frame(monkeypatch, lambda: os.kill(os.getpid(), signal.SIGTERM))
     else:
         real_write = track.write_npz
 

@@ -77,6 +77,12 @@ def _dry_run(config_path: Path, results: Path) -> str:
     return run.stdout + run.stderr
 
 
+def _scheduled_scenarios(dry_run_output: str) -> set[str]:
+    """The scenarios whose jobs a dry run lists."""
+    return {line.split("scenario=")[1].split(",")[0].strip()
+            for line in dry_run_output.splitlines() if "wildcards:" in line and "scenario=" in line}
+
+
 def test_changing_one_scenario_reruns_only_that_scenario(workbench, tmp_path):
     import yaml
 
@@ -85,8 +91,7 @@ def test_changing_one_scenario_reruns_only_that_scenario(workbench, tmp_path):
     changed = tmp_path / "ci_occlusion_changed.yaml"
     changed.write_text(yaml.safe_dump(config))
     out = _dry_run(changed, workbench)
-    scenarios = {line.split("scenario=")[1].split(",")[0].strip()
-                 for line in out.splitlines() if "wildcards:" in line and "scenario=" in line}
+    scenarios = _scheduled_scenarios(out)
     assert scenarios == {"occlusion"}, out[-3000:]
     assert "rule render:" in out
 
@@ -168,8 +173,7 @@ def test_seeds_add_replicates_without_rerunning_the_first(workbench, tmp_path):
     changed = tmp_path / "ci_seeds.yaml"
     changed.write_text(yaml.safe_dump(config))
     out = _dry_run(changed, workbench)
-    scenarios = {line.split("scenario=")[1].split(",")[0].strip()
-                 for line in out.splitlines() if "wildcards:" in line and "scenario=" in line}
+    scenarios = _scheduled_scenarios(out)
     assert scenarios == {"ambient-seed12"}, out[-3000:]
     assert "rule simulate:" in out and "rule render:" in out and "rule summary:" in out
     # a replicate that would clash with a configured scenario is refused
