@@ -313,12 +313,27 @@ def _output_names(args: argparse.Namespace) -> list[Path]:
         + ([Path(args.out).with_suffix(".json"), Path(args.out)] if args.out else [])
     if len({name.resolve() for name in names}) != len(names):
         raise InputError(f"two outputs share a name ({', '.join(map(str, names))}): give each its own file")
+    for name in names:
+        _check_writable(name)
     inputs = {path.resolve(): option for option, path in _input_paths(args)}
     for name in names:
         if name.resolve() in inputs:
             raise InputError(f"output {name} is the run's input ({inputs[name.resolve()]}): refflow never "
                              "writes over an input; choose another --out (the sidecar is <out>.json)")
     return names
+
+
+def _check_writable(path: Path) -> None:
+    """Refuse an output whose folder cannot be made or written, before any frame is measured."""
+    import os
+
+    parent = path.resolve().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"output {path}: {parent} is a file, not a folder: choose another --out")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"output {path}: folder {parent} is not writable: choose another --out")
 
 
 def _input_paths(args: argparse.Namespace) -> list[tuple[str, Path]]:

@@ -226,6 +226,7 @@ class FrameSource:
             if first is None:
                 raise InputError(f"image {str(self._files[0])!r} cannot be read: is it a valid image?")
             self.height, self.width = first.shape[:2]
+            self._scan_folder()
             self.fps = float(fps) if fps else float("nan")
             self.header_frames = len(self._files)
             if first.dtype == np.uint16:
@@ -301,6 +302,24 @@ class FrameSource:
                     f"{self.width}x{self.height}: all images must have the same size")
             time_s = index / self.fps if math.isfinite(self.fps) else float(index)
             yield index, time_s, self._crop(image)
+
+    def _scan_folder(self) -> None:
+        """Check every image's header and structure (not its pixels) before the first frame is
+        measured, so that a truncated or mis-sized image stops the run at once, not hours into it."""
+        from PIL import Image, UnidentifiedImageError
+
+        for file in self._files[1:]:
+            try:
+                with Image.open(file) as image:
+                    width, height = image.size
+                    image.verify()  # the file's structure and checksums, without decoding it
+            except UnidentifiedImageError:
+                continue  # a format only OpenCV knows: checked when it is read
+            except (OSError, ValueError) as err:
+                raise InputError(f"image {str(file)!r} cannot be read ({err}): remove or replace it") from None
+            if (width, height) != (self.width, self.height):
+                raise InputError(f"image {file.name} is {width}x{height} but the first is "
+                                 f"{self.width}x{self.height}: all images must have the same size")
 
     def _time_s(self, cap: cv2.VideoCapture, index: int) -> float:
         msec = cap.get(cv2.CAP_PROP_POS_MSEC)

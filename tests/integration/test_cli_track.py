@@ -393,8 +393,9 @@ def test_failed_poi_tracks_leave_no_csv(clip, tmp_path, monkeypatch) -> None:
     assert list(tmp_path.iterdir()) == []
 
 
-def _at_sixth_frame(monkeypatch, action) -> None:
-    """Every method built from now on calls ``action()`` when its sixth frame is measured."""
+def _at_sixth_frame(monkeypatch, action, counter: list | None = None) -> None:
+    """Every method built from now on calls ``action()`` when its sixth frame is measured
+    (and appends to ``counter`` for every frame)."""
     from flow import registry
 
     real_get = registry.get_method
@@ -406,6 +407,8 @@ def _at_sixth_frame(monkeypatch, action) -> None:
 
         def calc(reference, current):
             calls["n"] += 1
+            if counter is not None:
+                counter.append(calls["n"])
             if calls["n"] == 6:
                 action()
             return real_calc(reference, current)
@@ -595,6 +598,34 @@ def test_16_bit_images_keep_their_detail(tmp_path, low, high) -> None:
     assert np.allclose(dx, shifts, atol=0.1), dx
     meta = json.loads(out.with_suffix(".json").read_text())
     assert any(note.startswith("16-bit images: grey = value x") for note in meta["notes"])
+
+
+@pytest.mark.parametrize("problem", ["mis-sized image", "corrupt image", "parent is a file"])
+def test_problems_found_before_the_first_frame(clip, tmp_path, monkeypatch, capsys, problem) -> None:
+    """What can be checked up front is: a bad image at the end of a folder, an output
+    folder that cannot exist. No frame is measured first (no wasted hour)."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(6):
+        cv2.imwrite(str(folder / f"f{i}.png"), np.clip(texture(0.2 * i), 0, 255).astype(np.uint8))
+    out = tmp_path / "o.csv"
+    if problem == "mis-sized image":
+        cv2.imwrite(str(folder / "f9.png"), np.zeros((10, 10), np.uint8))
+        expected = "image f9.png is 10x10 but the first is 160x120"
+    elif problem == "corrupt image":
+        (folder / "f9.png").write_bytes((folder / "f0.png").read_bytes()[:200])
+        expected = "f9.png' cannot be read"
+    else:
+        (tmp_path / "taken").write_text("a file")
+        out = tmp_path / "taken" / "o.csv"
+        expected = "is a file, not a folder"
+    measured = []
+    _at_sixth_frame(monkeypatch, lambda: None, counter=measured)
+    assert main(["track", str(folder), "--fps", "30", "--rect", "40,30,80,60", "--method", "dis",
+                 "--out", str(out), "--no-progress"]) == 2
+    assert expected in capsys.readouterr().err
+    assert measured == [], "the problem must be found before any frame is measured"
+    assert not out.exists() and not out.with_suffix(".json").exists()
 
 
 def test_a_mask_cut_by_the_roi_is_reported(clip, tmp_path, capsys) -> None:
