@@ -140,6 +140,32 @@ def _starts_like_mp4(path: Path) -> bool:
         return handle.read(12)[4:8] in (b"ftyp", b"wide", b"mdat", b"free")
 
 
+def mp4_missing_bytes(path: Path) -> int:
+    """Bytes an MP4/MOV file's top-level boxes declare beyond its end (0: complete, or not
+    an MP4). A recording cut short after its index was written (``+faststart``, as phones
+    write) keeps its frame count but loses the end of its ``mdat``: seen here at once,
+    without decoding a frame."""
+    if not _starts_like_mp4(path):
+        return 0
+    length = path.stat().st_size
+    offset = 0
+    with path.open("rb") as handle:
+        while offset + 8 <= length:
+            handle.seek(offset)
+            header = handle.read(16)
+            size = int.from_bytes(header[:4], "big")
+            if size == 1 and len(header) >= 16:  # 64-bit size follows the type
+                size = int.from_bytes(header[8:16], "big")
+            elif size == 0:  # the box runs to the end of the file
+                return 0
+            if size < 8:
+                return 0  # not a box structure we understand: leave it to the decoder
+            if offset + size > length:
+                return offset + size - length
+            offset += size
+    return 0
+
+
 def diagnose_unreadable(path: Path) -> str:
     """One-line reason why OpenCV cannot open the video ``path``, and what to do."""
     name = str(path)
@@ -250,6 +276,13 @@ class FrameSource:
                 self.notes.append(f"--fps {self.fps:g} overrides the file's {self.header_fps:g} fps: time_s is "
                                   f"the file's timeline x {self._time_scale:.6g} (capture rate, e.g. slow motion)")
             self.header_frames = max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
+            missing = mp4_missing_bytes(self.path)
+            if missing and not allow_truncated:
+                raise InputError(
+                    f"video {str(self.path)!r} is truncated: its header lists {self.header_frames} frames but "
+                    f"the file ends {missing} bytes before its data does (an interrupted recording or an "
+                    "incomplete copy); copy the file again, or pass --allow-truncated to measure the "
+                    "frames that decode")
             ok, first = cap.read()
             cap.release()
             if not ok or first is None:

@@ -600,7 +600,7 @@ def test_16_bit_images_keep_their_detail(tmp_path, low, high) -> None:
     assert any(note.startswith("16-bit images: grey = value x") for note in meta["notes"])
 
 
-@pytest.mark.parametrize("problem", ["mis-sized image", "corrupt image", "parent is a file"])
+@pytest.mark.parametrize("problem", ["mis-sized image", "corrupt image", "parent is a file", "truncated mp4"])
 def test_problems_found_before_the_first_frame(clip, tmp_path, monkeypatch, capsys, problem) -> None:
     """What can be checked up front is: a bad image at the end of a folder, an output
     folder that cannot exist. No frame is measured first (no wasted hour)."""
@@ -615,10 +615,13 @@ def test_problems_found_before_the_first_frame(clip, tmp_path, monkeypatch, caps
     elif problem == "corrupt image":
         (folder / "f9.png").write_bytes((folder / "f0.png").read_bytes()[:200])
         expected = "f9.png' cannot be read"
-    else:
+    elif problem == "parent is a file":
         (tmp_path / "taken").write_text("a file")
         out = tmp_path / "taken" / "o.csv"
         expected = "is a file, not a folder"
+    else:  # index first (+faststart), then cut: the frame count is there, the data is not
+        folder = clip["folder"] / "truncated.mp4"
+        expected = "the file ends"
     measured = []
     _at_sixth_frame(monkeypatch, lambda: None, counter=measured)
     assert main(["track", str(folder), "--fps", "30", "--rect", "40,30,80,60", "--method", "dis",
