@@ -123,7 +123,8 @@ def _mask_for(args: argparse.Namespace, source: FrameSource, undistort: Any) -> 
     if len(given) != 1:
         raise InputError("pass exactly one of --mask MASK.png, --rect X,Y,W,H or --polygon X1,Y1,...")
     if args.mask:
-        mask = poi.load_mask(args.mask, frame_size=source.size, roi=source.roi)
+        mask = poi.load_mask(args.mask, frame_size=source.size, roi=source.roi,
+                             rotation_deg=source.rotation_deg, notes=source.notes)
     elif args.rect:
         mask = poi.rect_mask(args.rect, roi=source.roi)
     else:
@@ -154,7 +155,8 @@ def _background_for(args: argparse.Namespace, source: FrameSource, undistort: An
         raise InputError("pass one of --background-mask and --background-rect, not both")
     if args.background_mask:
         mask = poi.load_mask(args.background_mask, frame_size=source.size, roi=source.roi,
-                             what="background mask", instead="--background-rect")
+                             what="background mask", instead="--background-rect",
+                             rotation_deg=source.rotation_deg, notes=source.notes)
     elif args.background_rect:
         mask = poi.rect_mask(args.background_rect, roi=source.roi)
     else:
@@ -502,6 +504,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     run = {
         "tool": "refflow track",
         "input": {"path": str(args.input), "frame_size": list(source.size), "fps": _finite_or_none(source.fps),
+                  "rotation_deg": source.rotation_deg,
                   "header_frames": tracks.header_frames, "frames_decoded": source.frames_read,
                   "frames_measured": len(tracks.frame), "truncated": tracks.truncated},
         "frames": {"first": int(tracks.frame[0]), "stop": int(tracks.frame[-1]) + 1, "requested": args.frames},

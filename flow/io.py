@@ -78,6 +78,10 @@ def deep_image_gain(image: np.ndarray) -> float:
     return DEEP_TARGET_LEVEL / max(level, 1.0)
 
 
+# OpenCV's display rotations (CAP_PROP_ORIENTATION_META) as cv2.rotate codes.
+DISPLAY_ROTATIONS = {90: cv2.ROTATE_90_CLOCKWISE, 180: cv2.ROTATE_180, 270: cv2.ROTATE_90_COUNTERCLOCKWISE}
+
+
 def to_grey(image: np.ndarray, gain: float | None = None) -> np.ndarray:
     """Grey uint8 view of a decoded frame (BGR, BGRA, grey or 16-bit).
 
@@ -240,6 +244,7 @@ class FrameSource:
         self.notes: list[str] = []
         self._time_scale = 1.0  # capture time per second of the file's timeline
         self._deep_gain: float | None = None  # 16-bit images: their constant gain to 8 bits
+        self.rotation_deg = 0  # a video's display rotation, applied to its frames
         self.header_fps = float("nan")
         if self.is_folder:
             self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -268,6 +273,14 @@ class FrameSource:
             self.height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
             header_fps = cap.get(cv2.CAP_PROP_FPS)
             self.header_fps = header_fps if header_fps and header_fps > 0 else float("nan")
+            # Phones store portrait video as landscape frames plus a display rotation; OpenCV
+            # applies it, so the frames are measured as any player shows them.
+            self.rotation_deg = int(round(cap.get(cv2.CAP_PROP_ORIENTATION_META) or 0)) % 360
+            if self.rotation_deg:
+                self.notes.append(
+                    f"video {self.path.name} carries a {self.rotation_deg} degree display rotation: it is "
+                    "measured as displayed; masks, --rect, --roi and --between are read on the displayed "
+                    "frames (a mask drawn on the stored, unrotated frames is rotated to match)")
             self.fps = float(fps) if fps else self.header_fps
             # --fps on a video is the capture rate (a slow-motion or high-speed recording
             # played back at the file's rate): the file's timeline is rescaled to it.

@@ -7,14 +7,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from flow.io import InputError, Roi
+from flow.io import DISPLAY_ROTATIONS, InputError, Roi
 
 
 def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: str = "mask",
-              instead: str = "--rect/--polygon") -> np.ndarray:
+              instead: str = "--rect/--polygon", rotation_deg: int = 0,
+              notes: list[str] | None = None) -> np.ndarray:
     """Read a mask PNG (full-frame or ROI size) and return it as an ROI-sized bool array.
 
     ``what`` names the mask in messages, ``instead`` the options that can replace it.
+    ``rotation_deg``: the video's display rotation (frames are measured as displayed); a
+    full-frame mask drawn on the stored frames of a 90/270 degree video is rotated to match
+    (said in ``notes``).
     """
     path = Path(path)
     if not path.is_file():
@@ -23,12 +27,20 @@ def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: 
     if image is None:
         raise InputError(f"{what} {str(path)!r} cannot be read: save it as an 8-bit PNG")
     height, width = image.shape
+    if rotation_deg in (90, 270) and (height, width) == tuple(frame_size) and (width, height) != tuple(frame_size):
+        image = cv2.rotate(image, DISPLAY_ROTATIONS[rotation_deg])
+        height, width = image.shape
+        if notes is not None:
+            notes.append(f"{what} {Path(path).name} is drawn on the stored (unrotated) frames: rotated by "
+                         f"{rotation_deg} degrees to the displayed frames that are measured")
     if (width, height) == tuple(frame_size):
         image = image[roi.y:roi.y + roi.height, roi.x:roi.x + roi.width]
     elif (width, height) != (roi.width, roi.height):
+        rotated = (f"; the video is displayed rotated by {rotation_deg} degrees and measured as displayed"
+                   if rotation_deg else "")
         raise InputError(
             f"{what} is {width}x{height} but frames are {frame_size[0]}x{frame_size[1]} "
-            f"(ROI {roi.width}x{roi.height}): pass --roi or a full-size mask")
+            f"(ROI {roi.width}x{roi.height}{rotated}): pass --roi or a full-size mask")
     return image > 127
 
 

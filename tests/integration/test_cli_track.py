@@ -631,6 +631,34 @@ def test_problems_found_before_the_first_frame(clip, tmp_path, monkeypatch, caps
     assert not out.exists() and not out.with_suffix(".json").exists()
 
 
+def test_rotated_phone_video_is_measured_as_displayed(clip, tmp_path, capsys) -> None:
+    """A display matrix (portrait phone video): frames are measured as displayed, the sidecar
+    says so, a mask drawn on the stored frames is rotated to match (the same numbers as a
+    mask drawn on the displayed frames), and a mis-sized mask's message names the rotation."""
+    stored = tmp_path / "stored.mp4"
+    ffmpeg("-i", str(clip["video"]), "-c:v", "libx264", "-crf", "0", "-pix_fmt", "yuv420p", str(stored))
+    video = tmp_path / "rotated.mp4"
+    ffmpeg("-display_rotation", "90", "-i", str(stored), "-c", "copy", str(video))
+    raw_mask = cv2.imread(str(clip["mask"]), cv2.IMREAD_GRAYSCALE)  # drawn on the stored 160x120
+    shown = tmp_path / "shown.png"
+    cv2.imwrite(str(shown), cv2.rotate(raw_mask, cv2.ROTATE_90_COUNTERCLOCKWISE))  # what players show
+    runs = {}
+    for name, mask in (("raw", clip["mask"]), ("shown", shown)):
+        runs[name] = tmp_path / f"{name}.csv"
+        assert main(["track", str(video), "--mask", str(mask), "--method", "dis", "--out", str(runs[name]),
+                     "--no-progress"]) == 0
+    np.testing.assert_array_equal(_numbers(runs["raw"]), _numbers(runs["shown"]))
+    meta = json.loads(runs["raw"].with_suffix(".json").read_text())
+    assert meta["input"]["rotation_deg"] == 270 and meta["input"]["frame_size"] == [120, 160]
+    assert any("display rotation" in n for n in meta["notes"])
+    assert any("rotated by 270 degrees" in n for n in meta["notes"])
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), raw_mask[:60, :80])
+    assert main(["track", str(video), "--mask", str(small), "--method", "dis", "--out", str(tmp_path / "x.csv"),
+                 "--no-progress"]) == 2
+    assert "displayed rotated by 270 degrees" in capsys.readouterr().err
+
+
 def test_a_mask_cut_by_the_roi_is_reported(clip, tmp_path, capsys) -> None:
     """A full-frame mask that --roi cuts: the run says how much of it is left out, in the
     console and the sidecar, instead of silently measuring the rest."""
