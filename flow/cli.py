@@ -318,7 +318,11 @@ def _output_names(args: argparse.Namespace) -> list[Path]:
     for name in names:
         _check_writable(name)
     inputs = {path.resolve(): option for option, path in _input_paths(args)}
+    folders = {path: option for path, option in inputs.items() if path.is_dir()}
     for name in names:
+        if name.resolve().parent in folders:
+            raise InputError(f"output {name} is inside {folders[name.resolve().parent]} (a folder of input "
+                             "images): refflow never writes among its inputs; choose another --out")
         if name.resolve() in inputs:
             raise InputError(f"output {name} is the run's input ({inputs[name.resolve()]}): refflow never "
                              "writes over an input; choose another --out (the sidecar is <out>.json)")

@@ -577,6 +577,11 @@ def test_an_output_never_overwrites_an_input(clip, tmp_path, capsys) -> None:
         assert "never writes over an input" in err and len(err.strip().splitlines()) == 1, err
     assert {p: p.read_bytes() for p in (video, scale)} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.json", "v.mp4"]
+    # nor among the images of an input folder
+    assert main(["track", str(clip["images"]), "--fps", "30", "--rect", "20,20,40,30", "--method", "dis",
+                 "--out", str(clip["images"] / "o.csv"), "--no-progress"]) == 2
+    assert "a folder of input images" in capsys.readouterr().err
+    assert not (clip["images"] / "o.csv").exists()
 
 
 @pytest.mark.parametrize("low, high", [(20, 250), (0, 4095), (3000, 60000)])
