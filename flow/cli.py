@@ -262,6 +262,11 @@ def _check_scale_options(args: argparse.Namespace) -> None:
         raise InputError("--known-length needs --between X1,Y1,X2,Y2 (and vice versa)")
 
 
+# No camera images a structure at a kilometre per pixel: a larger scale is a typing error
+# (and would overflow the mm columns).
+MAX_MM_PER_PX = 1e6
+
+
 def _scale(args: argparse.Namespace, calibration: dict[str, Any] | None,
            frame_size: tuple[int, int] | None) -> tuple[float, str]:
     """``(mm_per_px, how)``; NaN when no scale was given (mm columns are then NaN).
@@ -275,15 +280,20 @@ def _scale(args: argparse.Namespace, calibration: dict[str, Any] | None,
 
     undistort_points = point_undistorter(calibration)
     if args.scale_file is not None:
-        return _scale_from_file(args.scale_file, undistort_points, frame_size)
-    if args.known_length is not None:
+        mm_per_px, how = _scale_from_file(args.scale_file, undistort_points, frame_size)
+    elif args.known_length is not None:
         mm_per_px = scale_from_known_length(args.known_length, args.between, undistort_points,
                                             frame_size=frame_size)
         where = " (undistorted)" if undistort_points is not None else ""
-        return mm_per_px, f"known length {args.known_length} mm between {args.between}{where}"
-    if args.mm_per_px is not None:
-        return args.mm_per_px, "--mm-per-px"
-    return float("nan"), "none (mm columns are NaN)"
+        how = f"known length {args.known_length} mm between {args.between}{where}"
+    elif args.mm_per_px is not None:
+        mm_per_px, how = args.mm_per_px, "--mm-per-px"
+    else:
+        return float("nan"), "none (mm columns are NaN)"
+    if not mm_per_px < MAX_MM_PER_PX:
+        raise InputError(f"scale {mm_per_px:g} mm per pixel ({how}) is beyond {MAX_MM_PER_PX:g} (a kilometre "
+                         "per pixel): check the scale's units and points")
+    return mm_per_px, how
 
 
 def _parse_frames(text: str | None) -> tuple[int, int | None] | None:
