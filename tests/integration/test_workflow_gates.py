@@ -125,6 +125,29 @@ def test_changing_a_tracking_parameter_reruns_only_tracking(workbench, tmp_path)
     assert not jobs & {"simulate", "render", "modes", "calibrate"}, f"re-ran upstream stages: {sorted(jobs)}"
 
 
+def test_seeds_add_replicates_without_rerunning_the_first(workbench, tmp_path):
+    """`seeds: [a, b]` on a scenario runs it once more as NAME-seedb (fresh draws); NAME
+    itself keeps seed a (here the defaults' seed), so nothing of it re-runs."""
+    import yaml
+
+    config = yaml.safe_load((ROOT / "config/ci.yaml").read_text())
+    config["scenarios"]["ambient"]["seeds"] = [config["defaults"]["seed"], 12]
+    changed = tmp_path / "ci_seeds.yaml"
+    changed.write_text(yaml.safe_dump(config))
+    out = _dry_run(changed, workbench)
+    scenarios = _scheduled_scenarios(out)
+    assert scenarios == {"ambient-seed12"}, out[-3000:]
+    assert "rule simulate:" in out and "rule render:" in out and "rule summary:" in out
+    # a replicate that would clash with a configured scenario is refused
+    config["scenarios"]["ambient"]["seeds"] = [11, 4]
+    config["scenarios"]["ambient-seed4"] = {}
+    changed.write_text(yaml.safe_dump(config))
+    run = subprocess.run([str(BIN / "snakemake"), "--cores", "1", "--configfile", str(changed),
+                          "--config", f"results_dir={workbench}", "-n"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert run.returncode != 0 and "seed replicate" in run.stdout + run.stderr
+
+
 def test_interrupted_run_resumes(workbench):
     """Ctrl-C in the middle of a tracking job, then the same command again: it finishes
     what was left and nothing else, with no half-written file in between."""
@@ -161,26 +184,3 @@ def test_interrupted_run_resumes(workbench):
     assert again.returncode == 0, again.stderr[-3000:]
     assert target.exists()
     assert "Nothing to be done" in _dry_run(ROOT / "config/ci.yaml", workbench)
-
-
-def test_seeds_add_replicates_without_rerunning_the_first(workbench, tmp_path):
-    """`seeds: [a, b]` on a scenario runs it once more as NAME-seedb (fresh draws); NAME
-    itself keeps seed a (here the defaults' seed), so nothing of it re-runs."""
-    import yaml
-
-    config = yaml.safe_load((ROOT / "config/ci.yaml").read_text())
-    config["scenarios"]["ambient"]["seeds"] = [config["defaults"]["seed"], 12]
-    changed = tmp_path / "ci_seeds.yaml"
-    changed.write_text(yaml.safe_dump(config))
-    out = _dry_run(changed, workbench)
-    scenarios = _scheduled_scenarios(out)
-    assert scenarios == {"ambient-seed12"}, out[-3000:]
-    assert "rule simulate:" in out and "rule render:" in out and "rule summary:" in out
-    # a replicate that would clash with a configured scenario is refused
-    config["scenarios"]["ambient"]["seeds"] = [11, 4]
-    config["scenarios"]["ambient-seed4"] = {}
-    changed.write_text(yaml.safe_dump(config))
-    run = subprocess.run([str(BIN / "snakemake"), "--cores", "1", "--configfile", str(changed),
-                          "--config", f"results_dir={workbench}", "-n"],
-                         cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert run.returncode != 0 and "seed replicate" in run.stdout + run.stderr
