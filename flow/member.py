@@ -64,10 +64,12 @@ References
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from numba import njit
 from scipy.special import ndtr
 
 # Visible background pixels the hidden ones under the outline are predicted from.
@@ -219,6 +221,103 @@ def _coverage(x: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray]:
         return z * ndtr(z) + norm * np.exp(-0.5 * z * z)
 
     return blur * (primitive(hi) - primitive(lo)), ndtr(hi) - ndtr(lo)
+
+
+_SQRT_HALF = np.sqrt(0.5)
+_INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
+
+
+@njit(cache=True, nogil=True)
+def _coverage_one(x: float, blur: float) -> tuple[float, float]:
+    """:func:`_coverage` of one pixel."""
+    if blur < 0.05:
+        return min(max(x + 0.5, 0.0), 1.0), 1.0 if -0.5 < x < 0.5 else 0.0
+    hi, lo = (x + 0.5) / blur, (x - 0.5) / blur
+    nhi, nlo = 0.5 * math.erfc(-hi * _SQRT_HALF), 0.5 * math.erfc(-lo * _SQRT_HALF)
+    phi_hi = hi * nhi + _INV_SQRT_2PI * math.exp(-0.5 * hi * hi)
+    phi_lo = lo * nlo + _INV_SQRT_2PI * math.exp(-0.5 * lo * lo)
+    return blur * (phi_hi - phi_lo), nhi - nlo
+
+
+@njit(cache=True, nogil=True)
+def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, col_error, mean,
+                blur, member_var):
+    """Gauss-Newton steps of :meth:`MemberEdges._fine`, profile by profile (see there): the
+    outline ``e`` (strip coordinate) and the member's grey ``m`` of each profile.
+
+    Returns ``(e, var_e, misfit, contrast, ok)``."""
+    n, length = values.shape
+    last = length - 1
+    reach = 2.5 * blur
+    n_member = 2
+    width = int(np.ceil(2 * reach)) + 2 + n_member  # member pixels, transition, none beyond
+    e_out = e_in.copy()
+    var_out = np.full(n, np.nan)
+    misfit_out = np.full(n, np.nan)
+    contrast_out = np.zeros(n)
+    ok_out = ok_in.copy()
+    wall = np.empty(width)
+    for i in range(n):
+        coef = col_coef if vertical[i] else row_coef
+        error = col_error if vertical[i] else row_error
+        mu = mean[i]
+        e = e_in[i]
+        start = int(np.floor(e - 0.5 - reach)) - (n_member - 1)
+        m = values[i, min(max(start + n_member - 1, 0), last)]
+        ok = ok_in[i]
+        var_e = np.nan
+        misfit = np.nan
+        contrast = 0.0
+        for _ in range(N_STEPS):
+            start = int(np.floor(e - 0.5 - reach)) - (n_member - 1)  # first member pixel
+            first_bg = int(np.ceil(e + 0.5 + reach))  # first pure background pixel
+            ok = ok and start >= 0 and first_bg + N_PREDICT <= last
+            start = min(max(start, 0), last)
+            first_bg = min(max(first_bg, 0), last - N_PREDICT)
+            h11 = h12 = h22 = g1 = g2 = rr = 0.0
+            n_used = 0
+            for k in range(width):
+                j = start + k
+                used = j < first_bg
+                j = min(j, last)
+                distance = min(max(first_bg - j, 1), MAX_DISTANCE)
+                w = mu
+                for t in range(N_PREDICT):
+                    w += coef[distance, t] * (values[i, first_bg + t] - mu)
+                wall[k] = w
+                if not used:
+                    continue
+                phi, dphi = _coverage_one(e - j, blur)
+                r = values[i, j] - (w + (m - w) * phi)
+                wgt = 1.0 / (member_var + (1.0 - phi) ** 2 * error[distance])
+                je = (m - w) * dphi
+                h11 += wgt * je * je
+                h12 += wgt * je * phi
+                h22 += wgt * phi * phi
+                g1 += wgt * je * r
+                g2 += wgt * phi * r
+                rr += wgt * r * r
+                n_used += 1
+            det = h11 * h22 - h12 * h12
+            good = det > 1e-12 * max(h11 * h22, 1e-30)
+            member = m
+            if good:
+                de = (h22 * g1 - h12 * g2) / det
+                e += min(max(de, -0.5), 0.5)
+                m += (h11 * g2 - h12 * g1) / det
+                var_e = h22 / det
+            else:
+                var_e = np.nan
+            misfit = rr / max(n_used, 1)
+            near = min(max(int(np.floor(e + 0.5)), 0), last)
+            contrast = member - wall[min(max(near - start, 0), width - 1)]
+            ok = ok and good
+        e_out[i] = e
+        var_out[i] = var_e
+        misfit_out[i] = misfit
+        contrast_out[i] = contrast
+        ok_out[i] = ok
+    return e_out, var_out, misfit_out, contrast_out, ok_out
 
 
 class _Field:
@@ -491,69 +590,15 @@ class MemberEdges:
         so the estimate does not stick to the guess; pixels where the model changes
         hands have coverage 0 or 1 and weigh nothing in it, so the estimate is continuous.
         """
-        n = len(self.line)
         finite, g, centre = self._centre(guess)
         values, inside = self._strips(image, centre)
         rows, cols = self.predict
-        coef = np.where(self.vertical[:, None, None], cols.coef[None], rows.coef[None])
-        error = np.where(self.vertical[:, None], cols.error[None], rows.error[None])
         mean = np.where(self.vertical, cols.mean, rows.mean) * (1.0 if gain is None else gain)
-        reach = 2.5 * blur
-        n_member = 2
-        width = int(np.ceil(2 * reach)) + 2 + n_member  # member pixels, transition, none beyond
-        idx = np.arange(n)[:, None]
         # Strip coordinate of the outline (pixel j spans [j - 0.5, j + 0.5]).
         e = HALF + self.side * (g - centre)
-        start = np.floor(e - 0.5 - reach).astype(np.intp) - (n_member - 1)
-        m = values[np.arange(n), np.clip(start + n_member - 1, 0, 2 * HALF)]
-        ok = finite & inside
-        var_e = np.full(n, np.nan)
-        misfit = np.full(n, np.nan)
-        contrast = np.zeros(n)
-        for _ in range(N_STEPS):
-            start = np.floor(e - 0.5 - reach).astype(np.intp) - (n_member - 1)  # first member pixel
-            first_bg = np.ceil(e + 0.5 + reach).astype(np.intp)  # first pure background pixel
-            ok &= (start >= 0) & (first_bg + N_PREDICT <= 2 * HALF)
-            start = np.clip(start, 0, 2 * HALF)
-            first_bg = np.clip(first_bg, 0, 2 * HALF - N_PREDICT)
-            j = start[:, None] + np.arange(width)[None, :]  # (n, width)
-            used = j < first_bg[:, None]
-            j = np.minimum(j, 2 * HALF)
-            distance = np.clip(first_bg[:, None] - j, 1, MAX_DISTANCE)
-            beyond = values[idx, first_bg[:, None] + np.arange(N_PREDICT)[None, :]]  # (n, N_PREDICT)
-            c = coef[np.arange(n)[:, None], distance]  # (n, width, N_PREDICT)
-            wall = mean[:, None] + np.einsum("nwk,nk->nw", c, beyond - mean[:, None])
-            wall_var = np.take_along_axis(error, distance, axis=1)
-            inside_px = e[:, None] - j
-            phi, dphi = _coverage(inside_px, blur)
-            v = values[idx, j]
-            member = m[:, None]
-            model = wall + (member - wall) * phi
-            r = np.where(used, v - model, 0.0)
-            s = self.member_var + (1.0 - phi) ** 2 * wall_var
-            wgt = np.where(used, 1.0 / s, 0.0)
-            je = (member - wall) * dphi
-            jm = phi
-            h11 = np.sum(wgt * je * je, axis=1)
-            h12 = np.sum(wgt * je * jm, axis=1)
-            h22 = np.sum(wgt * jm * jm, axis=1)
-            g1 = np.sum(wgt * je * r, axis=1)
-            g2 = np.sum(wgt * jm * r, axis=1)
-            det = h11 * h22 - h12 * h12
-            good = det > 1e-12 * np.maximum(h11 * h22, 1e-30)
-            safe = np.where(good, det, 1.0)
-            de = np.where(good, (h22 * g1 - h12 * g2) / safe, 0.0)
-            dm = np.where(good, (h11 * g2 - h12 * g1) / safe, 0.0)
-            e = e + np.clip(de, -0.5, 0.5)
-            m = m + dm
-            var_e = np.where(good, h22 / safe, np.nan)
-            n_used = np.maximum(used.sum(axis=1), 1)
-            misfit = np.sum(wgt * r * r, axis=1) / n_used
-            near = np.clip(np.floor(e + 0.5).astype(np.intp), 0, 2 * HALF)
-            kk = np.clip(near - start, 0, width - 1)
-            member_near = np.broadcast_to(member, wall.shape)
-            contrast = member_near[np.arange(n), kk] - wall[np.arange(n), kk]
-            ok &= good
+        e, var_e, misfit, contrast, ok = _fine_steps(
+            values, e.astype(np.float64), (finite & inside), self.vertical, rows.coef, cols.coef,
+            rows.error, cols.error, mean.astype(np.float64), float(blur), float(self.member_var))
         ok &= np.isfinite(e) & (np.sign(contrast) == self.polarity)
         edge = np.where(ok, centre + self.side * (e - HALF), np.nan)
         return _Outline(edge, np.where(ok, var_e, np.nan), contrast, np.where(ok, misfit, np.nan))
