@@ -53,9 +53,11 @@ class DenseMethod(Method):
     kind = "dense"
     last_sigma_px: tuple[float, float] | None = None
 
-    def bind(self, reference: np.ndarray, mask: np.ndarray) -> None:
+    def bind(self, reference: np.ndarray, mask: np.ndarray, *, read: np.ndarray | None = None) -> None:
         """Prepare for frames compared with ``reference``; ``mask`` (bool, same shape) marks
-        the POIs, the structure's pixels. The default ignores both."""
+        the POIs, the structure's pixels; ``read`` (bool, same shape, optional) the other
+        pixels whose flow the driver reads (static background points). A method may leave
+        the flow elsewhere unsolved (NaN). The default ignores all three."""
 
     def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         """Flow from ``reference`` to ``current``.

@@ -19,7 +19,6 @@ import os
 import queue
 import sys
 import tempfile
-import threading
 import time
 import warnings
 import zipfile
@@ -290,6 +289,10 @@ def image_digest(image: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest()[:16]
 
 
+# Counters a chaining method keeps (see track_dense), reported with the timings.
+CHAIN_COUNTS = ("full_frames", "warm_frames")
+
+
 def _timings(t0: float, t1: float, t2: float, n_frames: int) -> dict[str, float]:
     # frames_s times the frame loop only: reading the reference and building the
     # methods (setup_s) are not frame processing.
@@ -406,14 +409,23 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     if mask is None:
         mask = np.zeros(reference.shape, bool)
         mask[rows_, columns] = True
+    read = None
+    if background is not None:
+        read = np.zeros(reference.shape, bool)
+        read[background.rows, background.columns] = True
     idle: queue.SimpleQueue = queue.SimpleQueue()
-    for _ in range(jobs):
-        method = factory()
+    methods = [factory() for _ in range(jobs)]
+    for method in methods:
         if hasattr(method, "bind"):
-            method.bind(reference, mask)
+            method.bind(reference, mask, read=read)
         idle.put(method)
-    local = threading.local()
     lk = _LucasKanadeSigma(reference, poi_xy)
+    # A method that solves frames from one another (``chain_length`` > 1) gets the frames of
+    # one chain, ``(index - reference_frame) // chain_length``, in order on one instance, from
+    # a restart: the chains are fixed by the frame index alone, so any --frames part or --jobs
+    # count gives the very numbers of one run (a part that starts inside a chain first solves
+    # the chain's earlier frames without keeping them). The reference frame begins a chain.
+    chain = max(1, int(getattr(method, "chain_length", 0) or 0))
 
     poi_points = poi_xy.astype(np.float64)
     centroid = poi_points.mean(axis=0, keepdims=True)
@@ -428,11 +440,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         return ((dx - mx[:-1]).astype(np.float32), (dy - my[:-1]).astype(np.float32),
                 (float(mx[-1]), float(my[-1])))
 
-    def measure_frame(current: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, tuple[float, float],
-                                                    tuple[float, float]]:
-        method = getattr(local, "method", None)
-        if method is None:
-            method = local.method = idle.get_nowait()
+    def measure_frame(method: Any, current: np.ndarray) -> tuple[np.ndarray, np.ndarray, float,
+                                                                 tuple[float, float], tuple[float, float]]:
         flow = method.calc(reference, current)
         dx = flow[rows_, columns, 0].astype(np.float32)
         dy = flow[rows_, columns, 1].astype(np.float32)
@@ -446,17 +455,43 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         cdx, cdy, camera = compensate(flow, dx, dy)
         return cdx, cdy, residual, camera, sigma
 
+    def measure_chain(items: list[tuple[int, float, np.ndarray, bool]]) -> list[tuple[int, float, tuple]]:
+        """Results of the kept frames of one chain, solved in order on one method instance."""
+        method = idle.get()
+        try:
+            if hasattr(method, "restart"):
+                method.restart()
+            results = []
+            for index, time_s, grey, keep in items:
+                result = measure_frame(method, grey)  # a warm-up frame too: the chain needs it
+                if keep:
+                    results.append((index, time_s, result))
+            return results
+        finally:
+            idle.put(method)
+
+    def chain_of(index: int) -> int:
+        return (index - reference_frame) // chain
+
+    def chains() -> Iterator[list[tuple[int, float, np.ndarray, bool]]]:
+        first = start if chain == 1 else max(0, min(start, reference_frame + chain_of(start) * chain))
+        group: list[tuple[int, float, np.ndarray, bool]] = []
+        for index, time_s, grey in _frames(source, first, stop, undistort):
+            if group and chain_of(index) != chain_of(group[-1][0]):
+                yield group
+                group = []
+            group.append((index, time_s, grey, index >= start))
+        if group:
+            yield group
+
     in_range = start <= reference_frame and (stop is None or reference_frame < stop)
     offset = None
     if not in_range or reference_average > 1:
         # The range lacks the reference frame (or the reference is no frame of the video but
         # a mean of frames): measure it against itself, as the frame's own row would have
-        # been, so the offset removed is the same in a whole run and in its parts.
-        method = idle.get()
-        flow = method.calc(reference, reference)
-        idle.put(method)
-        own_dx, own_dy, _ = compensate(flow, flow[rows_, columns, 0].astype(np.float32),
-                                       flow[rows_, columns, 1].astype(np.float32))
+        # been (the first of its chain), so the offset removed is the same in a whole run and
+        # in its parts.
+        own_dx, own_dy = measure_chain([(reference_frame, 0.0, reference, True)])[0][2][:2]
         offset = (own_dx.astype(np.float64), own_dy.astype(np.float64))
 
     store = PoiStore(len(poi_xy), directory=store_dir)
@@ -466,37 +501,37 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     cameras: list[tuple[float, float]] = []
     sigmas: list[tuple[float, float]] = []
 
-    def collect(index: int, time_s: float, result: tuple) -> None:
-        frame_list.append(index)
-        times.append(time_s)
-        store.append(result[0], result[1])
-        residuals.append(result[2])
-        cameras.append(result[3])
-        sigmas.append(result[4])
-        bar.update(1)
+    def collect(results: list[tuple[int, float, tuple]]) -> None:
+        for index, time_s, result in results:
+            frame_list.append(index)
+            times.append(time_s)
+            store.append(result[0], result[1])
+            residuals.append(result[2])
+            cameras.append(result[3])
+            sigmas.append(result[4])
+            bar.update(1)
 
     t1 = time.perf_counter()
     bar = _progress(source, start, stop, progress)
     threads_before = cv2.getNumThreads()
     try:
         if jobs == 1:
-            for index, time_s, grey in _frames(source, start, stop, undistort):
-                collect(index, time_s, measure_frame(grey))
+            for group in chains():
+                collect(measure_chain(group))
         else:
             # One OpenCV thread per job avoids oversubscribing the cores; a bounded queue keeps
             # memory constant and results in frame order.
             cv2.setNumThreads(1)
+            bound = 2 * jobs if chain == 1 else jobs + 1
             with ThreadPoolExecutor(max_workers=jobs) as pool:
                 pending: deque = deque()
                 try:
-                    for index, time_s, grey in _frames(source, start, stop, undistort):
-                        pending.append((index, time_s, pool.submit(measure_frame, grey)))
-                        if len(pending) >= 2 * jobs:
-                            i, t, fut = pending.popleft()
-                            collect(i, t, fut.result())
+                    for group in chains():
+                        pending.append(pool.submit(measure_chain, group))
+                        if len(pending) >= bound:
+                            collect(pending.popleft().result())
                     while pending:
-                        i, t, fut = pending.popleft()
-                        collect(i, t, fut.result())
+                        collect(pending.popleft().result())
                 except BaseException:
                     pool.shutdown(wait=True, cancel_futures=True)
                     raise
@@ -513,8 +548,14 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         offset = (reference_offset(dx, row), reference_offset(dy, row))
     camera = np.asarray(cameras, np.float64).reshape(-1, 2) if background is not None else None
     sigma = np.asarray(sigmas, np.float64).reshape(-1, 2)
+    timings = _timings(t0, t1, t2, len(frame_list))
+    # Where the time went, for a method that tracks frames from their predecessor: frames it
+    # measured in full and frames it tracked (warm-up frames of a part included).
+    for key in CHAIN_COUNTS:
+        if hasattr(methods[0], key):
+            timings[key] = float(sum(getattr(m, key) for m in methods))
     return Tracks(frame_index, np.asarray(times), dx, dy, np.asarray(residuals), xs, ys,
-                  reference_frame, offset[0], offset[1], _timings(t0, t1, t2, len(frame_list)),
+                  reference_frame, offset[0], offset[1], timings,
                   source.truncated, source.header_frames, image_digest(reference),
                   camera_dx=None if camera is None else camera[:, 0],
                   camera_dy=None if camera is None else camera[:, 1],
@@ -848,7 +889,8 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
                                                    if "camera_dx_px" in first.small else ()) \
         + (("sigma_dx_px", "sigma_dy_px") if all("sigma_dx_px" in p.small for p in parts) else ())
     concat = {key: np.concatenate([p.small[key] for p in parts]) for key in per_frame}
-    timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts) for key in ("setup_s", "frames_s")}
+    timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts)
+               for key in ("setup_s", "frames_s") + tuple(k for k in CHAIN_COUNTS if k in first.meta.get("timings", {}))}
     timings["frames_per_s"] = len(concat["frame"]) / max(timings["frames_s"], 1e-9)
     tracks = Tracks(concat["frame"], concat["time_s"], dx, dy, concat["residual"],
                     first.small["x_px"], first.small["y_px"], reference_frame,

@@ -19,7 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.deepmatching import MatchParams, deep_matching, densify
+from flow.deepmatching import MatchParams, deep_matching, densify, search_radius
 from flow.member import MemberEdges
 from flow.registry import DenseMethod, check_pair, register
 from flow.variational import VariationalParams, Workspace, refine
@@ -53,6 +53,41 @@ def _resolve(preset: str, overrides: dict[str, Any]) -> dict[str, Any]:
     merged = dict(PRESETS[preset])
     merged.update(overrides)
     return merged
+
+
+# The dense flow is solved on the pixels the driver reads (POIs, background points) plus this
+# margin, or the matching's search radius where that is larger: room for the matching's
+# patches and search, and for the variational part's smoothing to settle before the POIs.
+CROP_MARGIN_PX = 64
+# A window covering more than this share of the frame is not worth cutting out.
+CROP_MAX_SHARE = 0.8
+
+
+def crop_window(shape: tuple[int, int], needed: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """Rows and columns of the bounding box of ``needed`` grown by ``margin`` px and clipped to
+    the frame; None where it would cover most of the frame anyway (or nothing is needed)."""
+    rows, cols = np.nonzero(needed)
+    if rows.size == 0:
+        return None
+    height, width = shape
+    r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, height)
+    c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, width)
+    if (r1 - r0) * (c1 - c0) > CROP_MAX_SHARE * height * width:
+        return None
+    return slice(r0, r1), slice(c0, c1)
+
+
+# Frames of one chain (see the driver, :func:`flow.track.track_dense`) are measured in order.
+# The first frame of a chain gets the full measurement: DeepMatching + DeepFlow, the member's
+# edges fitted from the dense flow, and the check that they match the POIs better. Where the
+# member's edges won, the next frames are tracked from the previous frame's member motion
+# alone (still against the reference: no drift; no dense flow), as long as the POIs' mean
+# photometric mismatch under that motion stays within WARM_RATIO times (and above 1 /
+# WARM_RATIO times) the chain's last full measurement's, plus MATCH_SLACK grey levels; any
+# other frame (an occlusion starting or ending, a jump, a knock, a failed fit) gets the full
+# measurement and becomes the chain's new key.
+CHAIN_LENGTH = 16
+WARM_RATIO = 1.3
 
 
 # The edge refinement is kept when the POIs' mean photometric mismatch under it is at most
@@ -89,6 +124,15 @@ class DeepFlow(DenseMethod):
     preset : {"default", "fast", "large-displacement"}
     member : bool
         Refine the POIs from the member's edges (default True).
+    warm : bool
+        Track the member from frame to frame within a chain of :data:`CHAIN_LENGTH` frames,
+        verified by the photometric mismatch (default True; False: every frame measured in
+        full). Without a member, or with background points to read, every frame is measured
+        in full.
+    crop : bool
+        Solve the dense flow only around the pixels that are read (the POIs' and background
+        points' bounding box plus :data:`CROP_MARGIN_PX` or the search radius, default True);
+        the flow elsewhere is NaN. Without :meth:`bind` the whole frame is solved.
     downscale, ngh_rad, max_patch, ... : matching parameters
     alpha, beta, delta, gamma, kappa, sigma, eta, n_outer, n_sor, omega, ... :
         variational parameters; ``beta = 0`` switches the matching term (and
@@ -99,25 +143,53 @@ class DeepFlow(DenseMethod):
                "structure's edges (default)")
     member_default = True
 
-    def __init__(self, *, preset: str = "default", member: bool | None = None, **params: Any) -> None:
+    def __init__(self, *, preset: str = "default", member: bool | None = None, crop: bool = True,
+                 warm: bool = True, **params: Any) -> None:
         merged = _resolve(preset, params)
         self._match, self._var = _split(merged)
-        self._member_on = self.member_default if member is None else bool(member)
-        if not isinstance(self._member_on, bool):
-            raise ValueError(f"member must be true or false, got {member!r}")
+        for label, value in (("member", member), ("crop", crop), ("warm", warm)):
+            if value is not None and not isinstance(value, bool):
+                raise ValueError(f"{label} must be true or false, got {value!r}")
+        self._member_on = self.member_default if member is None else member
+        self._crop_on = crop
+        self._window: tuple[slice, slice] | None = None
+        self._bound_shape: tuple[int, ...] | None = None
+        # Frames the driver hands one instance in order (0: each frame on its own).
+        self.chain_length = CHAIN_LENGTH if warm else 0
+        self._chaining = False
+        self._theta: np.ndarray | None = None
+        self._key_mismatch = float("nan")
+        self._warm_flow: np.ndarray | None = None
+        self._read: np.ndarray | None = None
+        # Frames measured in full and tracked from their predecessor (see CHAIN_LENGTH).
+        self.full_frames = 0
+        self.warm_frames = 0
         # Scratch reused from frame to frame: an instance serves one thread at a time.
         self._workspace = Workspace()
         self._member: MemberEdges | None = None
         super().__init__(
-            preset=preset, member=self._member_on, **dataclasses.asdict(self._match),
+            preset=preset, member=self._member_on, crop=crop, warm=warm,
+            **dataclasses.asdict(self._match),
             **dataclasses.asdict(self._var)
         )
 
-    def bind(self, reference: np.ndarray, mask: np.ndarray) -> None:
+    def bind(self, reference: np.ndarray, mask: np.ndarray, *, read: np.ndarray | None = None) -> None:
         self._member = None
+        mask = np.asarray(mask, bool)
+        self._window = None
+        self._window_match = self._match
+        self._bound_shape = reference.shape
+        self._chaining = False
+        self._read = read
+        if self._crop_on and mask.shape == reference.shape:
+            needed = mask if read is None else mask | np.asarray(read, bool)
+            # The search radius of the whole frame, so that cutting out a window does not
+            # shorten the matching's reach.
+            radius = search_radius(self._match, reference.shape)
+            self._window = crop_window(reference.shape, needed, max(CROP_MARGIN_PX, int(np.ceil(radius))))
+            self._window_match = dataclasses.replace(self._match, ngh_rad=radius)
         if not self._member_on:
             return
-        mask = np.asarray(mask, bool)
         if mask.shape != reference.shape or mask.sum() < 3:
             return
         self._member = MemberEdges.from_reference(reference, mask)
@@ -132,8 +204,24 @@ class DeepFlow(DenseMethod):
         self._prior_rows = np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1)
 
     def _dense(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
+        window = self._window
+        if window is None or reference.shape != self._bound_shape:
+            return self._solve_dense(reference, current, self._match)
+        flow = np.full(reference.shape + (2,), np.nan, np.float32)
+        flow[window] = self._solve_dense(reference[window], current[window], self._window_match)
+        return flow
+
+    def restart(self) -> None:
+        """Begin a chain: the next frame gets the full measurement, the following ones (until
+        the next restart) may be tracked from their predecessor. Without a restart every call
+        of :meth:`calc` stands alone."""
+        self._chaining = self.chain_length > 1 and self._member is not None and self._read is None
+        self._key_mismatch = float("nan")
+        self._theta = None
+
+    def _solve_dense(self, reference: np.ndarray, current: np.ndarray, match: MatchParams) -> np.ndarray:
         if self._var.beta > 0:
-            grid = deep_matching(reference, current, self._match)
+            grid = deep_matching(reference, current, match)
             match_flow, match_weight = densify(grid, reference.shape, nearest=True)
             return refine(
                 reference,
@@ -147,14 +235,20 @@ class DeepFlow(DenseMethod):
 
     def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         check_pair(reference, current)
-        flow = self._dense(reference, current)
         self.last_sigma_px = None
+        if self._chaining and self._theta is not None and current.shape == self._bound_shape:
+            flow = self._track(reference, current)
+            if flow is not None:
+                self.warm_frames += 1
+                return flow
+        self.full_frames += 1
+        self._theta = None
+        flow = self._dense(reference, current)
         member = self._member
         if member is None or member.shape != reference.shape:
             return flow
         prior = flow[self._prior_rows, self._prior_cols].astype(np.float64)
-        gain = float(np.median(current[self._poi_rows, self._poi_cols])) / self._ref_level
-        fit = member.fit(current, prior, gain=gain if np.isfinite(gain) and gain > 0 else None)
+        fit = member.fit(current, prior, gain=self._gain(current))
         if not fit.ok:
             return flow
         u, v = member.displacement(fit)
@@ -162,13 +256,42 @@ class DeepFlow(DenseMethod):
         # textured member (or outlines that are not the member's) the dense flow is right.
         dense_u = flow[self._poi_rows, self._poi_cols, 0]
         dense_v = flow[self._poi_rows, self._poi_cols, 1]
-        if (_mismatch(reference, current, self._poi_cols, self._poi_rows, u, v)
-                > MATCH_TOLERANCE * _mismatch(reference, current, self._poi_cols, self._poi_rows,
-                                              dense_u, dense_v) + MATCH_SLACK):
+        edges = _mismatch(reference, current, self._poi_cols, self._poi_rows, u, v)
+        if edges > MATCH_TOLERANCE * _mismatch(reference, current, self._poi_cols, self._poi_rows,
+                                               dense_u, dense_v) + MATCH_SLACK:
             return flow
         flow[self._poi_rows, self._poi_cols, 0] = u
         flow[self._poi_rows, self._poi_cols, 1] = v
         self.last_sigma_px = member.mean_sigma(fit)
+        if self._chaining:
+            self._theta, self._key_mismatch = fit.params, edges
+        return flow
+
+    def _gain(self, current: np.ndarray) -> float | None:
+        """The frame's brightness at the POIs relative to the reference's (lighting changes)."""
+        gain = float(np.median(current[self._poi_rows, self._poi_cols])) / self._ref_level
+        return gain if np.isfinite(gain) and gain > 0 else None
+
+    def _track(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray | None:
+        """The POIs' flow from the member's edges, starting from the previous frame's motion
+        (NaN elsewhere); None where the fit fails or its mismatch leaves the chain's band."""
+        member = self._member
+        prior = np.column_stack(member.field.uv(self._theta))
+        fit = member.fit(current, prior, gain=self._gain(current))
+        if not fit.ok:
+            return None
+        u, v = member.displacement(fit)
+        edges = _mismatch(reference, current, self._poi_cols, self._poi_rows, u, v)
+        key = self._key_mismatch
+        if not key / WARM_RATIO - MATCH_SLACK <= edges <= key * WARM_RATIO + MATCH_SLACK:
+            return None
+        if self._warm_flow is None or self._warm_flow.shape[:2] != current.shape:
+            self._warm_flow = np.full(current.shape + (2,), np.nan, np.float32)
+        flow = self._warm_flow
+        flow[self._poi_rows, self._poi_cols, 0] = u
+        flow[self._poi_rows, self._poi_cols, 1] = v
+        self.last_sigma_px = member.mean_sigma(fit)
+        self._theta = fit.params
         return flow
 
 

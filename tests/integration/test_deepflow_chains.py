@@ -1,0 +1,113 @@
+"""The default method's chains: frames tracked from their predecessor, the same numbers however
+the run is split, and full measurements where tracking cannot hold (a jump, an occlusion).
+
+``deepflow`` measures the first frame of each chain of ``CHAIN_LENGTH`` frames in full and
+tracks the member's edges through the rest (see :mod:`flow.methods.deepflow`). The chains are
+fixed by the frame index, so a run split into --frames parts (starting inside a chain) or
+measured with --jobs 2 gives the very numbers of one run; a frame where the member jumps or
+the view is blocked gets the full measurement.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from flow.cli import main
+from flow.methods.deepflow import CHAIN_LENGTH
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "unit"))
+from _lowtex_clip import encode, make_clip  # noqa: E402
+
+FPS = 60.0
+FRAMES = 48
+JUMP = (0.30, 0.45, 9.0)  # frames 18-26: 9 px further, inside the second chain
+OCCLUDED_S = (0.58, 0.63)  # frames 35-37
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> dict:
+    folder = tmp_path_factory.mktemp("chains")
+    clip = make_clip(seed=21, frames=FRAMES, fps=FPS, height=120, width=160, bar_width=28,
+                     amplitude=2.5, jump=JUMP, occlude_s=OCCLUDED_S)
+    video = encode(clip, folder / "bar.mp4", crf=12)
+    mask = folder / "mask.png"
+    cv2.imwrite(str(mask), clip.mask.astype(np.uint8) * 255)
+    return {"clip": clip, "video": video, "mask": mask, "folder": folder}
+
+
+def _numbers(path: Path) -> np.ndarray:
+    with path.open() as handle:
+        return np.array([[float(v) for v in row.values()] for row in csv.DictReader(handle)])
+
+
+def _track(scene: dict, out: Path, *extra: str) -> Path:
+    assert main(["track", str(scene["video"]), "--mask", str(scene["mask"]), "--no-progress",
+                 *extra, "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def whole(scene) -> Path:
+    return _track(scene, scene["folder"] / "whole.csv", "--mm-per-px", "0.5")
+
+
+def test_chains_track_the_member_and_measure_in_full_where_it_jumps(scene, whole) -> None:
+    clip = scene["clip"]
+    rows = _numbers(whole)
+    dx, valid = rows[:, 2], rows[:, 6] == 1
+    true = clip.truth_px - clip.truth_px[0]
+    occluded = clip.occluded
+    assert not valid[occluded].any(), "the blocked view is flagged"
+    seen = valid & ~occluded
+    assert seen[~occluded].mean() >= 0.95
+    error = np.abs(dx[seen] - true[seen])
+    print(f"chains: max error {error.max():.4f} px, RMSE {np.sqrt(np.mean(error ** 2)):.4f} px")
+    assert error.max() < 0.15 and np.sqrt(np.mean(error ** 2)) < 0.06
+    t = np.arange(FRAMES) / FPS
+    jumped = (t >= JUMP[0]) & (t < JUMP[1])
+    assert np.abs(dx[jumped & seen] - true[jumped & seen]).max() < 0.15, "the jump is followed"
+    timings = json.loads(whole.with_suffix(".json").read_text())["timings"]
+    chains = -(-FRAMES // CHAIN_LENGTH)
+    # Most frames are tracked; each chain's first frame, the jump's two ends and the
+    # occlusion's frames are measured in full.
+    assert timings["full_frames"] + timings["warm_frames"] == FRAMES
+    assert timings["warm_frames"] >= FRAMES // 2
+    assert timings["full_frames"] >= chains + 2
+
+
+def test_chains_give_one_run_s_numbers_in_parts_and_with_jobs(scene, whole, tmp_path) -> None:
+    two = _track(scene, tmp_path / "two.csv", "--mm-per-px", "0.5", "--jobs", "2")
+    assert np.array_equal(_numbers(whole), _numbers(two), equal_nan=True)
+    parts = [tmp_path / f"{k}.npz" for k in range(3)]
+    # Both cuts fall inside a chain: a part first solves its chain's earlier frames.
+    for part, frames in zip(parts, ["0:7", "7:23", "23:"], strict=True):
+        assert 0 < int(frames.split(":")[0] or 0) % CHAIN_LENGTH or frames.startswith("0:")
+        assert main(["track", str(scene["video"]), "--mask", str(scene["mask"]), "--no-progress",
+                     "--frames", frames, "--raw-tracks", str(part)]) == 0
+    merged = tmp_path / "merged.csv"
+    assert main(["merge", *map(str, parts), "--mm-per-px", "0.5", "--out", str(merged)]) == 0
+    assert np.array_equal(_numbers(whole), _numbers(merged), equal_nan=True)
+
+
+def test_tracked_frames_read_like_frames_measured_in_full(scene, whole, tmp_path) -> None:
+    full = _track(scene, tmp_path / "full.csv", "--mm-per-px", "0.5", "--param", "warm=false")
+    timings = json.loads(full.with_suffix(".json").read_text())["timings"]
+    assert timings["warm_frames"] == 0 and timings["full_frames"] == FRAMES
+    clip = scene["clip"]
+    true = clip.truth_px - clip.truth_px[0]
+    a, b = _numbers(whole), _numbers(full)
+    both = (a[:, 6] == 1) & (b[:, 6] == 1)
+    assert both.mean() > 0.85
+    rmse = [float(np.sqrt(np.mean((r[both, 2] - true[both]) ** 2))) for r in (a, b)]
+    difference = np.abs(a[both, 2] - b[both, 2])
+    print(f"RMSE tracked {rmse[0]:.4f} px, full {rmse[1]:.4f} px; difference: max {difference.max():.4f} "
+          f"px, mean {difference.mean():.4f} px")
+    assert rmse[0] <= 1.1 * rmse[1] + 0.005
+    assert difference.mean() < 0.02
