@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import os
 import sys
 import time
 import warnings
@@ -440,6 +441,14 @@ def _calibration_summary(args: argparse.Namespace, calibration: dict[str, Any] |
             "video_origin": list(_video_origin(args))}
 
 
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the system tells it)."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except (AttributeError, OSError):
+        return max(os.cpu_count() or 1, 1)
+
+
 def cmd_track(args: argparse.Namespace) -> int:
     from flow import poi, track
 
@@ -459,6 +468,8 @@ def cmd_track(args: argparse.Namespace) -> int:
     _positive("--fps", args.fps, "the camera frame rate in frames per second")
     if args.max_frames is not None and args.max_frames < 1:
         raise InputError(f"--max-frames {args.max_frames} must be >= 1")
+    if args.jobs is None:
+        args.jobs = available_cores()
     if args.jobs < 1:
         raise InputError(f"--jobs {args.jobs} must be >= 1")
     if not args.out and not args.raw_tracks:
@@ -693,7 +704,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera image motion fitted to the background (affine falls back to translation "
                         "on a narrow strip)")
     _add_measure_options(p, out_required=False)
-    p.add_argument("--jobs", type=int, default=1, help="frames measured in parallel (dense methods)")
+    p.add_argument("--jobs", type=int, help="frames measured in parallel (dense methods; default: the "
+                   "cores this process may use). The numbers do not depend on it")
     p.add_argument("--max-frames", type=int, help="stop before this frame index")
     p.add_argument("--frames", metavar="START:END",
                    help="measure frames START..END-1 only (dense methods; the reference frame may lie outside)")
