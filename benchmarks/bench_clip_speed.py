@@ -42,12 +42,14 @@ WORKBENCH = ROOT / "results" / "ambient" / "render"
 METHODS = ("deepflow", "deepflow-opencv", "dis")
 BASELINE = "deepflow-opencv"
 
-# Runs refflow in this process and reports its peak resident memory (MB) on stderr's last line.
+# Runs refflow in this process and reports its peak resident memory (MB, the kernel's VmHWM of
+# this process; ru_maxrss can carry the parent's over exec) on stderr's last line.
 _RUNNER = (
-    "import resource, sys\n"
+    "import sys\n"
     "from flow.cli import main\n"
     "rc = main(sys.argv[1:])\n"
-    "print(f'peak_rss_mb {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.1f}', file=sys.stderr)\n"
+    "peak = next((int(line.split()[1]) for line in open('/proc/self/status') if line.startswith('VmHWM')), 0)\n"
+    "print(f'peak_rss_mb {peak / 1024:.1f}', file=sys.stderr)\n"
     "raise SystemExit(rc)\n"
 )
 

@@ -320,6 +320,39 @@ def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, co
     return e_out, var_out, misfit_out, contrast_out, ok_out
 
 
+@njit(cache=True, nogil=True)
+def _irls(A, d, w0, prior, lam, tukey_c, min_scale):
+    """Tukey-biweight iteratively reweighted least squares of ``A theta = d`` (weights ``w0``)
+    with a ridge ``lam`` towards ``prior``, 8 steps. Returns ``(theta, weights, z, scale)``:
+    ``z`` the standardised residuals of the last step, ``scale`` their robust spread (never
+    below ``min_scale``: exact data must not make every profile an outlier)."""
+    n, k = A.shape
+    weights = w0.copy()
+    theta = prior.copy()
+    z = np.zeros(n)
+    scale = 1.0
+    root = np.sqrt(w0)
+    for _ in range(8):
+        H = lam * np.eye(k)
+        b = lam * prior
+        for i in range(n):
+            wi = weights[i]
+            if wi == 0.0:
+                continue
+            for p in range(k):
+                api = A[i, p] * wi
+                b[p] += api * d[i]
+                for q in range(k):
+                    H[p, q] += api * A[i, q]
+        theta = np.linalg.solve(H, b)
+        z = (d - A @ theta) * root
+        scale = max(1.4826 * np.median(np.abs(z - np.median(z))), min_scale)
+        for i in range(n):
+            u = z[i] / (tukey_c * scale)
+            weights[i] = w0[i] * (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
+    return theta, weights, z, scale
+
+
 class _Field:
     """The member's motion field at a set of points, as beam kinematics.
 
@@ -368,6 +401,22 @@ class _Outline:
     var: np.ndarray  # (N,) its variance, px^2
     contrast: np.ndarray  # (N,) member minus background grey at the outline
     misfit: np.ndarray  # (N,) weighted mean squared residual of the outline model
+
+
+@dataclass
+class _Solution:
+    """One robust fit of the motion field (see :meth:`MemberEdges._solve`)."""
+
+    theta: np.ndarray  # (N_PARAMS,)
+    design: np.ndarray  # (U, N_PARAMS) rows of the usable profiles
+    weights: np.ndarray  # (U,) final robust weights
+    lam: float  # the prior's weight
+    used: int  # profiles with a non-zero weight
+    scale: float  # robust spread of the standardised residuals
+    spread: float  # px: how well the outlines agree
+    z: np.ndarray  # (U,) standardised residuals
+    usable: np.ndarray  # (N,) bool: the profiles the rows are
+    kept: np.ndarray  # (U,) bool: weights > 0
 
 
 class MemberEdges:
@@ -644,7 +693,7 @@ class MemberEdges:
                 result = self._solve(d, usable, 1.0 / np.maximum(var, 1e-8), prior)
                 if result is None:
                     break
-                theta = result[0]
+                theta = result.theta
                 guess = ref.edge + self.design @ theta
             if result is not None:
                 results.append(result)
@@ -661,21 +710,23 @@ class MemberEdges:
             result = self._solve(d, usable, 1.0 / np.maximum(found.var[usable], 1e-8), prior)
             if result is None:
                 break
-            guess = self.ref.edge + self.design @ result[0]
+            guess = self.ref.edge + self.design @ result.theta
         if result is not None:
             results.append(result)
         if not results:
             return empty
-        theta, cov, used, scale, best = min(results, key=lambda r: r[4])
+        chosen = min(results, key=lambda r: r.spread)
+        best = chosen.spread
         # What the plausible outline models (their outlines agree within PLAUSIBLE times the
         # best one's spread) disagree on is a systematic error the fit's scatter cannot show:
         # every profile of a straight outline shares its sub-pixel phase, so a model's
         # phase-dependent error is common to all of them. Their spread enters the uncertainty.
-        plausible = [r for r in results if r[4] <= PLAUSIBLE * best + 1e-3]
+        plausible = [r for r in results if r.spread <= PLAUSIBLE * best + 1e-3]
         gu, gv = self.poi_field.mean_gradient()
-        means = np.array([[gu @ r[0], gv @ r[0]] for r in plausible])
+        means = np.array([[gu @ r.theta, gv @ r.theta] for r in plausible])
         systematic = means.std(axis=0) if len(plausible) > 1 else np.zeros(2)
-        return MemberFit(True, theta, cov, used, self.n_profiles, scale, systematic)
+        return MemberFit(True, chosen.theta, self._covariance(chosen), chosen.used, self.n_profiles,
+                         chosen.scale, systematic)
 
     def _normal(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Displacement of each outline along its line for a motion (u, v) at the profiles:
@@ -683,33 +734,28 @@ class MemberEdges:
         return np.where(self.vertical, v - self.slope * u, u - self.slope * v)
 
     def _solve(self, d: np.ndarray, usable: np.ndarray, w0: np.ndarray,
-               prior: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, float, float] | None:
+               prior: np.ndarray) -> _Solution | None:
         """Robust weighted least squares of the motion field from outline displacements ``d``."""
-        A = self.design[usable]
+        A = np.ascontiguousarray(self.design[usable])
         lam = self.params.prior_weight * float(np.sum(w0))
-        weights = w0.copy()
-        theta = prior.copy()
-        scale = 1.0
-        for _ in range(8):
-            H = A.T @ (A * weights[:, None]) + lam * np.eye(N_PARAMS)
-            theta = np.linalg.solve(H, A.T @ (weights * d) + lam * prior)
-            z = (d - A @ theta) * np.sqrt(w0)  # standardised residuals
-            # Never below half the modelled noise: exact data must not make every profile an outlier.
-            scale = max(1.4826 * float(np.median(np.abs(z - np.median(z)))), MIN_SCALE)
-            u = z / (self.params.tukey_c * scale)
-            weights = w0 * np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-        used = int((weights > 0).sum())
+        theta, weights, z, scale = _irls(A, d, w0, prior, lam, float(self.params.tukey_c), MIN_SCALE)
+        kept = weights > 0
+        used = int(kept.sum())
         if used < self.params.min_profiles:
             return None
-        H = A.T @ (A * weights[:, None]) + lam * np.eye(N_PARAMS)
+        r = (d - A @ theta)[kept]
+        spread = 1.4826 * float(np.median(np.abs(r - np.median(r))))  # px: how well the outlines agree
+        return _Solution(theta, A, weights, lam, used, scale, spread, z, usable, kept)
+
+    def _covariance(self, solution: _Solution) -> np.ndarray:
+        """The parameters' covariance of ``solution``."""
+        A, weights = solution.design, solution.weights
+        H = A.T @ (A * weights[:, None]) + solution.lam * np.eye(N_PARAMS)
         # Neighbouring profiles see the same blob of background texture and the same codec
         # block, so their errors are correlated: the covariance of independent profiles is
         # scaled by the design effect 1 + 2 sum(rho) of the residuals along the outlines.
-        cov = np.linalg.inv(H) * scale ** 2 * self._design_effect(z, usable, weights > 0)
-        kept = weights > 0
-        r = (d - A @ theta)[kept]
-        spread = 1.4826 * float(np.median(np.abs(r - np.median(r))))  # px: how well the outlines agree
-        return theta, cov, used, scale, spread
+        return (np.linalg.inv(H) * solution.scale ** 2
+                * self._design_effect(solution.z, solution.usable, solution.kept))
 
     def _design_effect(self, z: np.ndarray, usable: np.ndarray, kept: np.ndarray) -> float:
         """``1 + 2 sum_lag rho(lag)`` of the standardised residuals ``z`` of neighbouring

@@ -111,11 +111,14 @@ class DeepFlow(DenseMethod):
     """DeepFlow: DeepMatching matches blended into a variational energy, then the structure's
     motion refined from its edges.
 
-    The dense flow (DeepMatching + DeepFlow) covers the whole frame. Where the user's POI
-    mask marks a member with edges, :mod:`flow.member` measures the outline's sub-pixel
-    motion against the background and fits a smooth motion field to it; the POIs take
-    that field's values (the dense flow is the starting guess, and keeps the directions
+    The dense flow (DeepMatching + DeepFlow) covers the POIs' window (see ``crop``). Where
+    the user's POI mask marks a member with edges, :mod:`flow.member` measures the outline's
+    sub-pixel motion against the background and fits a smooth motion field to it; the POIs
+    take that field's values (the dense flow is the starting guess, and keeps the directions
     the outline does not constrain). A member without usable edges keeps the dense flow.
+    Through a video the driver hands the frames over in chains (see ``warm``): a chain's
+    first frame is measured so, the rest track the member from the previous frame's motion
+    while their photometric mismatch stays in the chain's band.
 
     Parameters (keyword-only; defaults follow the papers, see
     :class:`flow.deepmatching.MatchParams` and
