@@ -125,3 +125,15 @@ def versions() -> dict[str, str]:
         with contextlib.suppress(metadata.PackageNotFoundError):
             found[name] = metadata.version(name)
     return found
+
+
+def source_digest(root: str | Path, package: str) -> str:
+    """Short hash of the Python sources of ``package`` under ``root`` and of ``refflow`` (the
+    plumbing every stage shares): file names and bytes, in sorted order."""
+    root = Path(root)
+    digest = hashlib.sha256()
+    for name in (package, "refflow"):
+        for path in sorted((root / name).rglob("*.py")):
+            digest.update(path.relative_to(root).as_posix().encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]

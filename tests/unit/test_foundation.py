@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from refflow.config import deep_merge, load_config
-from refflow.io import atomic_path, config_hash, write_json
+from refflow.io import atomic_path, config_hash, source_digest, write_json
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -111,3 +111,25 @@ def test_atomic_path_gives_ordinary_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert target.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_source_digest_moves_with_the_code_it_names_only(tmp_path):
+    """The workflow's rules take the digest of the code they run as a param, so that a changed
+    tool re-runs its jobs: the digest must change with the package's (or refflow's) sources
+    and with nothing else."""
+    for name in ("flow", "sim", "refflow"):
+        (tmp_path / name / "sub").mkdir(parents=True)
+        (tmp_path / name / "a.py").write_text("x = 1\n")
+        (tmp_path / name / "sub" / "b.py").write_text("y = 2\n")
+    before = source_digest(tmp_path, "flow")
+    assert source_digest(tmp_path, "flow") == before
+    (tmp_path / "sim" / "a.py").write_text("x = 3\n")  # another stage's code
+    (tmp_path / "flow" / "notes.txt").write_text("not code\n")
+    assert source_digest(tmp_path, "flow") == before
+    (tmp_path / "flow" / "sub" / "b.py").write_text("y = 3\n")
+    changed = source_digest(tmp_path, "flow")
+    assert changed != before
+    (tmp_path / "refflow" / "a.py").write_text("x = 4\n")  # the shared plumbing
+    assert source_digest(tmp_path, "flow") != changed
+    (tmp_path / "flow" / "sub" / "b.py").rename(tmp_path / "flow" / "b.py")  # a file moved
+    assert source_digest(tmp_path, "flow") != changed

@@ -2,10 +2,20 @@
 import json
 import os
 import re
+from pathlib import Path
 
 from refflow.config import deep_merge
+from refflow.io import source_digest
 
 RESULTS = config.get("results_dir", "results")
+
+
+# The digest of the code each stage runs, passed as a param: Snakemake re-runs a job whose params
+# changed but does not look inside the code a command imports, so without it an updated tool
+# would leave old results in place (or meet the old tool's parts at `refflow merge`, which
+# refuses to mix them).
+CODE = {package: source_digest(Path(workflow.main_snakefile).parent, package)
+        for package in ("sim", "flow", "analysis")}
 METHODS = list(config["methods"])
 
 

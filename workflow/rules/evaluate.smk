@@ -12,6 +12,7 @@ rule evaluate:
     output:
         f"{RESULTS}/{{scenario}}/metrics/{{method}}.json",
     params:
+        code=CODE["analysis"],
         group=scenario_group,
     conda:
         "../envs/refflow.yaml"
@@ -38,6 +39,8 @@ rule summary:
             category="Summary",
         ),
         md=f"{RESULTS}/summary.md",
+    params:
+        code=CODE["analysis"],
     conda:
         "../envs/refflow.yaml"
     benchmark:
@@ -55,6 +58,8 @@ rule table1:
     output:
         md=f"{RESULTS}/table1.md",
         csv=f"{RESULTS}/table1.csv",
+    params:
+        code=CODE["analysis"],
     conda:
         "../envs/refflow.yaml"
     benchmark:
@@ -72,6 +77,8 @@ rule modal:
         sim=f"{RESULTS}/{{scenario}}/sim/sim.json",
     output:
         f"{RESULTS}/{{scenario}}/metrics/modal.json",
+    params:
+        code=CODE["analysis"],
     conda:
         "../envs/refflow.yaml"
     benchmark:

@@ -15,6 +15,7 @@ rule render:
         poi_truth=f"{RESULTS}/{{scenario}}/render/poi_truth.npz",
         sidecar=f"{RESULTS}/{{scenario}}/render/render.json",
     params:
+        code=CODE["sim"],
         out_dir=subpath(output.sidecar, parent=True),
     conda:
         "../envs/refflow.yaml"
@@ -33,6 +34,7 @@ rule calibration_set:
     output:
         directory(f"{RESULTS}/{{scenario}}/calibration/images"),
     params:
+        code=CODE["sim"],
         board=CALIBRATION_BOARD,
         square_mm=CALIBRATION_SQUARE_MM,
     conda:
@@ -52,6 +54,7 @@ rule calibrate:
     output:
         f"{RESULTS}/{{scenario}}/calibration/calibration.json",
     params:
+        code=CODE["flow"],
         board=CALIBRATION_BOARD,
         square_mm=CALIBRATION_SQUARE_MM,
     conda:

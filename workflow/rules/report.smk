@@ -26,6 +26,7 @@ rule scenario_figures:
             subcategory="{scenario}",
         ),
     params:
+        code=CODE["analysis"],
         track_args=lambda wc, input: " ".join(f"--track {t}" for t in input.tracks),
         klt_args=lambda wc, input: " ".join(f"--klt-raw {t}" for t in input.klt_raw),
     conda:
@@ -77,6 +78,7 @@ rule render_figures:
             for path in render_figure_paths()
         ],
     params:
+        code=CODE["sim"],
         out_dir=lambda wildcards, output: os.path.dirname(output[0]),
     conda:
         "../envs/refflow.yaml"
@@ -95,6 +97,7 @@ rule timings:
     output:
         f"{RESULTS}/timings.md",
     params:
+        code=CODE["analysis"],
         results=subpath(output[0], parent=True),
         # Every rule of this workflow: benchmark file names start with one of them.
         rules=lambda wildcards: " ".join(sorted(r.name for r in workflow.rules)),

@@ -38,6 +38,8 @@ rule modes:
         stage_config("sim"),
     output:
         f"{RESULTS}/{{scenario}}/sim/modes.json",
+    params:
+        code=CODE["sim"],
     conda:
         "../envs/refflow.yaml"
     benchmark:
@@ -56,6 +58,7 @@ rule simulate:
         shapes=f"{RESULTS}/{{scenario}}/sim/shapes.npz",
         sidecar=f"{RESULTS}/{{scenario}}/sim/sim.json",
     params:
+        code=CODE["sim"],
         out_dir=subpath(output.sidecar, parent=True),
     conda:
         "../envs/refflow.yaml"

@@ -13,6 +13,7 @@ rule track_part:
         method=methods_of_kind("dense"),
         part=r"\d+",
     params:
+        code=CODE["flow"],
         frames=part_frames,
         measure=measure_args,
         setup=setup_args,
@@ -39,6 +40,7 @@ rule merge_track:
     wildcard_constraints:
         method=methods_of_kind("dense"),
     params:
+        code=CODE["flow"],
         filters=filter_args,
     conda:
         "../envs/refflow.yaml"
@@ -62,6 +64,7 @@ rule track:
     wildcard_constraints:
         method=methods_of_kind("sparse"),
     params:
+        code=CODE["flow"],
         measure=measure_args,
         setup=setup_args,
         filters=filter_args,
