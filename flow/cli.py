@@ -704,8 +704,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera image motion fitted to the background (affine falls back to translation "
                         "on a narrow strip)")
     _add_measure_options(p, out_required=False)
-    p.add_argument("--jobs", type=int, help="frames measured in parallel (dense methods; default: the "
-                   "cores this process may use). The numbers do not depend on it")
+    p.add_argument("--jobs", type=int, help="threads measuring frames (or chains of frames) in parallel "
+                   "(dense methods; default: the cores this process may use). The numbers do not "
+                   "depend on it")
     p.add_argument("--max-frames", type=int, help="stop before this frame index")
     p.add_argument("--frames", metavar="START:END",
                    help="measure frames START..END-1 only (dense methods; the reference frame may lie outside)")

@@ -737,6 +737,8 @@ class MemberEdges:
                prior: np.ndarray) -> _Solution | None:
         """Robust weighted least squares of the motion field from outline displacements ``d``."""
         A = np.ascontiguousarray(self.design[usable])
+        if not (np.isfinite(prior).all() and np.isfinite(d).all() and np.isfinite(w0).all()):
+            return None  # (a NaN prior: the dense flow had none there; the frame keeps it)
         lam = self.params.prior_weight * float(np.sum(w0))
         theta, weights, z, scale = _irls(A, d, w0, prior, lam, float(self.params.tukey_c), MIN_SCALE)
         kept = weights > 0

@@ -372,9 +372,10 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     ----------
     source : FrameSource
     factory : callable
-        Builds a method instance. Each worker thread gets its own (OpenCV flow
-        objects are not thread-safe); they are built before the timed frame loop,
-        and OpenCV releases the GIL while it computes.
+        Builds a method instance; ``jobs`` of them are built before the timed frame loop
+        and handed out from a pool, one chain of frames (one frame for a method that does
+        not chain) at a time, so that no two threads share one (OpenCV flow objects are
+        not thread-safe). OpenCV and our numba kernels release the GIL while they compute.
     poi_xy : ndarray, shape (P, 2), int
         POI ``(x, y)`` in ROI pixels.
     reference_frame : int
@@ -519,8 +520,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
             for group in chains():
                 collect(measure_chain(group))
         else:
-            # One OpenCV thread per job avoids oversubscribing the cores; a bounded queue keeps
-            # memory constant and results in frame order.
+            # One OpenCV thread per job avoids oversubscribing the cores; a bounded queue (of
+            # frames, or of chains of frames) keeps memory bounded and results in frame order.
             cv2.setNumThreads(1)
             bound = 2 * jobs if chain == 1 else jobs + 1
             with ThreadPoolExecutor(max_workers=jobs) as pool:

@@ -85,7 +85,8 @@ def crop_window(shape: tuple[int, int], needed: np.ndarray, margin: int) -> tupl
 # photometric mismatch under that motion stays within WARM_RATIO times (and above 1 /
 # WARM_RATIO times) the chain's last full measurement's, plus MATCH_SLACK grey levels; any
 # other frame (an occlusion starting or ending, a jump, a knock, a failed fit) gets the full
-# measurement and becomes the chain's new key.
+# measurement, which becomes the chain's new key where the edges win it (where the dense
+# flow wins, the chain's next frames are measured in full too).
 CHAIN_LENGTH = 16
 WARM_RATIO = 1.3
 
@@ -150,20 +151,21 @@ class DeepFlow(DenseMethod):
                  warm: bool = True, **params: Any) -> None:
         merged = _resolve(preset, params)
         self._match, self._var = _split(merged)
-        for label, value in (("member", member), ("crop", crop), ("warm", warm)):
-            if value is not None and not isinstance(value, bool):
+        for label, value, optional in (("member", member, True), ("crop", crop, False),
+                                       ("warm", warm, False)):
+            if not (isinstance(value, bool) or (optional and value is None)):
                 raise ValueError(f"{label} must be true or false, got {value!r}")
         self._member_on = self.member_default if member is None else member
         self._crop_on = crop
         self._window: tuple[slice, slice] | None = None
         self._bound_shape: tuple[int, ...] | None = None
-        # Frames the driver hands one instance in order (0: each frame on its own).
-        self.chain_length = CHAIN_LENGTH if warm else 0
+        # Frames the driver hands one instance in order (0: each frame on its own); set by bind.
+        self._warm_on = warm
+        self.chain_length = 0
         self._chaining = False
         self._theta: np.ndarray | None = None
         self._key_mismatch = float("nan")
         self._warm_flow: np.ndarray | None = None
-        self._read: np.ndarray | None = None
         # Frames measured in full and tracked from their predecessor (see CHAIN_LENGTH).
         self.full_frames = 0
         self.warm_frames = 0
@@ -183,19 +185,24 @@ class DeepFlow(DenseMethod):
         self._window_match = self._match
         self._bound_shape = reference.shape
         self._chaining = False
-        self._read = read
+        self._warm_flow = None
         if self._crop_on and mask.shape == reference.shape:
             needed = mask if read is None else mask | np.asarray(read, bool)
             # The search radius of the whole frame, so that cutting out a window does not
             # shorten the matching's reach.
             radius = search_radius(self._match, reference.shape)
-            self._window = crop_window(reference.shape, needed, max(CROP_MARGIN_PX, int(np.ceil(radius))))
-            self._window_match = dataclasses.replace(self._match, ngh_rad=radius)
-        if not self._member_on:
-            return
-        if mask.shape != reference.shape or mask.sum() < 3:
+            if radius > 0:  # (<= 0: the whole image is searched, so it is solved whole)
+                self._window = crop_window(reference.shape, needed,
+                                           max(CROP_MARGIN_PX, int(np.ceil(radius))))
+                self._window_match = dataclasses.replace(self._match, ngh_rad=radius)
+        # The driver reads chain_length after bind: without a member to track (or with
+        # background points, whose flow only the dense solve gives) frames stand alone.
+        self.chain_length = 0
+        if not self._member_on or mask.shape != reference.shape or mask.sum() < 3:
             return
         self._member = MemberEdges.from_reference(reference, mask)
+        if self._warm_on and read is None:
+            self.chain_length = CHAIN_LENGTH
         self._poi_rows, self._poi_cols = np.nonzero(mask)
         self._ref_level = float(np.median(reference[mask])) or 1.0
         # Where the dense flow is read for each outline: its member-side pixel.
@@ -216,9 +223,9 @@ class DeepFlow(DenseMethod):
 
     def restart(self) -> None:
         """Begin a chain: the next frame gets the full measurement, the following ones (until
-        the next restart) may be tracked from their predecessor. Without a restart every call
-        of :meth:`calc` stands alone."""
-        self._chaining = self.chain_length > 1 and self._member is not None and self._read is None
+        the next restart or bind) may be tracked from their predecessor. Before the first
+        restart after a bind every call of :meth:`calc` stands alone."""
+        self._chaining = self.chain_length > 1 and self._member is not None
         self._key_mismatch = float("nan")
         self._theta = None
 
@@ -301,7 +308,8 @@ class DeepFlow(DenseMethod):
 @register("deepflow-dense")
 class DeepFlowDense(DeepFlow):
     """``deepflow`` without the edge refinement: the dense DeepMatching + DeepFlow field at the
-    POIs (the paper's method as published; an ablation of the default)."""
+    POIs (the paper's method as published, solved on the POIs' window; an ablation of the
+    default). Every frame is measured on its own."""
 
     summary = "DeepMatching + DeepFlow dense field at the POIs, no edge refinement (the paper's method)"
     member_default = False

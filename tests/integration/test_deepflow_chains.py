@@ -111,3 +111,26 @@ def test_tracked_frames_read_like_frames_measured_in_full(scene, whole, tmp_path
           f"px, mean {difference.mean():.4f} px")
     assert rmse[0] <= 1.1 * rmse[1] + 0.005
     assert difference.mean() < 0.02
+
+
+def test_frames_stand_alone_where_there_is_nothing_to_track(scene) -> None:
+    """Chains only where the member's edges can be tracked: not for the dense ablation, not
+    with background points (their flow needs the dense solve), not with warm=false; and a
+    NaN starting guess makes the edge fit fail, never the run."""
+    from flow.methods.deepflow import DeepFlow, DeepFlowDense
+
+    clip = scene["clip"]
+    reference, mask = clip.frames[0], clip.mask
+    wall = np.zeros_like(mask)
+    wall[:10, :10] = True
+    cases = [(DeepFlow(), None, CHAIN_LENGTH), (DeepFlow(), wall, 0), (DeepFlowDense(), None, 0),
+             (DeepFlow(warm=False), None, 0)]
+    for method, read, expected in cases:
+        method.bind(reference, mask, read=read)
+        assert method.chain_length == expected, (type(method).__name__, read is None)
+    member = cases[0][0]._member
+    prior = np.zeros((member.n_profiles, 2))
+    prior[0] = np.nan  # one outline without dense flow: the least-squares guess is all NaN
+    assert not member.fit(clip.frames[5], prior).ok
+    with pytest.raises(ValueError, match="crop must be true or false"):
+        DeepFlow(crop=None)

@@ -1,7 +1,8 @@
 # Stage 3: the measurement tool on the rendered video, once per method, like a user would.
-# Reference-frame (dense) methods measure every frame on its own: their runs are split into
-# frame ranges (`track.chunk_frames`) that run as separate jobs, then merged. KLT follows its
-# features from frame to frame and runs as one job.
+# Reference-frame (dense) methods measure every frame against the reference (`deepflow` in
+# chains fixed by the frame index, so a range gives the numbers of a whole run): their runs
+# are split into frame ranges (`track.chunk_frames`) that run as separate jobs, then merged.
+# KLT follows its features from frame to frame and runs as one job.
 
 
 rule track_part:
