@@ -148,11 +148,19 @@ def test_seeds_add_replicates_without_rerunning_the_first(workbench, tmp_path):
     assert run.returncode != 0 and "seed replicate" in run.stdout + run.stderr
 
 
-def test_interrupted_run_resumes(workbench):
+def test_interrupted_run_resumes(workbench, tmp_path):
     """Ctrl-C in the middle of a tracking job, then the same command again: it finishes
     what was left and nothing else, with no half-written file in between."""
     import signal
     import time
+
+    # A tracking job of the CI workbench takes a few seconds: so that Ctrl-C surely lands
+    # inside one, the first run's `refflow track` waits before it starts (a shim first on
+    # its PATH). refflow's own clean-up on Ctrl-C is tested in tests/integration/test_cli_track.py.
+    shim = tmp_path / "bin"
+    shim.mkdir()
+    (shim / "refflow").write_text(f'#!/bin/sh\nif [ "$1" = track ]; then sleep 60; fi\nexec "{BIN / "refflow"}" "$@"\n')
+    (shim / "refflow").chmod(0o755)
 
     target = workbench / "occlusion/track/deepflow.csv"
     # as in a first run that was stopped: the measurement and everything after it are not there yet
@@ -166,7 +174,8 @@ def test_interrupted_run_resumes(workbench):
            "--config", f"results_dir={workbench}", "--rerun-incomplete"]
     part_log = workbench / "occlusion/logs/track_deepflow.0.log"
     started = part_log.stat().st_mtime if part_log.exists() else 0.0
-    run = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    slowed = {**env, "PATH": f"{shim}{os.pathsep}{env['PATH']}"}
+    run = subprocess.Popen(cmd, cwd=ROOT, env=slowed, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                            text=True, start_new_session=True)
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and run.poll() is None:
