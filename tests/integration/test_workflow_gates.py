@@ -159,7 +159,9 @@ def test_interrupted_run_resumes(workbench, tmp_path):
     # its PATH). refflow's own clean-up on Ctrl-C is tested in tests/integration/test_cli_track.py.
     shim = tmp_path / "bin"
     shim.mkdir()
-    (shim / "refflow").write_text(f'#!/bin/sh\nif [ "$1" = track ]; then sleep 60; fi\nexec "{BIN / "refflow"}" "$@"\n')
+    waiting = tmp_path / "tracking-started"
+    (shim / "refflow").write_text(f'#!/bin/sh\nif [ "$1" = track ]; then touch "{waiting}"; sleep 60; fi\n'
+                                  f'exec "{BIN / "refflow"}" "$@"\n')
     (shim / "refflow").chmod(0o755)
 
     target = workbench / "occlusion/track/deepflow.csv"
@@ -172,20 +174,21 @@ def test_interrupted_run_resumes(workbench, tmp_path):
            "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
     cmd = [str(BIN / "snakemake"), "--cores", "2", "--configfile", "config/ci.yaml",
            "--config", f"results_dir={workbench}", "--rerun-incomplete"]
-    part_log = workbench / "occlusion/logs/track_deepflow.0.log"
-    started = part_log.stat().st_mtime if part_log.exists() else 0.0
     slowed = {**env, "PATH": f"{shim}{os.pathsep}{env['PATH']}"}
     run = subprocess.Popen(cmd, cwd=ROOT, env=slowed, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                            text=True, start_new_session=True)
     deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and run.poll() is None:
-        if part_log.exists() and part_log.stat().st_mtime > started:
-            break
+    while time.monotonic() < deadline and run.poll() is None and not waiting.exists():
         time.sleep(0.2)
-    time.sleep(1.0)
+    time.sleep(0.5)
     assert run.poll() is None, "the run ended before it could be interrupted"
     os.killpg(run.pid, signal.SIGINT)  # what Ctrl-C at a terminal sends
-    out, _ = run.communicate(timeout=120)
+    try:
+        out, _ = run.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(run.pid, signal.SIGKILL)
+        out, _ = run.communicate()
+        pytest.fail("the interrupted run did not stop within 120 s: " + out[-3000:])
     assert run.returncode != 0, out[-2000:]
     assert not target.exists()
     assert not list(workbench.glob("occlusion/track/parts/*.npz.*")), "a half-written part was left"
