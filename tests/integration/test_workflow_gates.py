@@ -175,8 +175,11 @@ def test_interrupted_run_resumes(workbench, tmp_path):
     cmd = [str(BIN / "snakemake"), "--cores", "2", "--configfile", "config/ci.yaml",
            "--config", f"results_dir={workbench}", "--rerun-incomplete"]
     slowed = {**env, "PATH": f"{shim}{os.pathsep}{env['PATH']}"}
+    # A terminal's Ctrl-C reaches processes that do not ignore SIGINT; a test run started in
+    # the background of a script inherits SIGINT ignored, so the run gets the default back.
     run = subprocess.Popen(cmd, cwd=ROOT, env=slowed, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                           text=True, start_new_session=True)
+                           text=True, start_new_session=True,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and run.poll() is None and not waiting.exists():
         time.sleep(0.2)
