@@ -70,7 +70,6 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from numba import njit
-from scipy.special import ndtr
 
 # Visible background pixels the hidden ones under the outline are predicted from.
 N_PREDICT = 3
@@ -208,28 +207,15 @@ def _predictor(reference: np.ndarray, background: np.ndarray, ridge: float) -> _
     return _Predictor(coef, mean, error)
 
 
-def _coverage(x: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray]:
-    """Member coverage ``Phi`` of a pixel whose centre lies ``x`` px inside the outline
-    (positive: on the member's side), and ``dPhi/dx``: the pixel's area integral of a step
-    blurred by a Gaussian of ``blur`` px."""
-    if blur < 0.05:
-        return np.clip(x + 0.5, 0.0, 1.0), ((x > -0.5) & (x < 0.5)).astype(np.float64)
-    hi, lo = (x + 0.5) / blur, (x - 0.5) / blur
-    norm = 1.0 / np.sqrt(2.0 * np.pi)
-
-    def primitive(z: np.ndarray) -> np.ndarray:
-        return z * ndtr(z) + norm * np.exp(-0.5 * z * z)
-
-    return blur * (primitive(hi) - primitive(lo)), ndtr(hi) - ndtr(lo)
-
-
 _SQRT_HALF = np.sqrt(0.5)
 _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 
 
 @njit(cache=True, nogil=True)
-def _coverage_one(x: float, blur: float) -> tuple[float, float]:
-    """:func:`_coverage` of one pixel."""
+def _coverage(x: float, blur: float) -> tuple[float, float]:
+    """Member coverage ``Phi`` of a pixel whose centre lies ``x`` px inside the outline
+    (positive: on the member's side), and ``dPhi/dx``: the pixel's area integral of a step
+    blurred by a Gaussian of ``blur`` px."""
     if blur < 0.05:
         return min(max(x + 0.5, 0.0), 1.0), 1.0 if -0.5 < x < 0.5 else 0.0
     hi, lo = (x + 0.5) / blur, (x - 0.5) / blur
@@ -287,7 +273,7 @@ def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, co
                 wall[k] = w
                 if not used:
                     continue
-                phi, dphi = _coverage_one(e - j, blur)
+                phi, dphi = _coverage(e - j, blur)
                 r = values[i, j] - (w + (m - w) * phi)
                 wgt = 1.0 / (member_var + (1.0 - phi) ** 2 * error[distance])
                 je = (m - w) * dphi
@@ -416,7 +402,6 @@ class _Solution:
     spread: float  # px: how well the outlines agree
     z: np.ndarray  # (U,) standardised residuals
     usable: np.ndarray  # (N,) bool: the profiles the rows are
-    kept: np.ndarray  # (U,) bool: weights > 0
 
 
 class MemberEdges:
@@ -747,7 +732,7 @@ class MemberEdges:
             return None
         r = (d - A @ theta)[kept]
         spread = 1.4826 * float(np.median(np.abs(r - np.median(r))))  # px: how well the outlines agree
-        return _Solution(theta, A, weights, lam, used, scale, spread, z, usable, kept)
+        return _Solution(theta, A, weights, lam, used, scale, spread, z, usable)
 
     def _covariance(self, solution: _Solution) -> np.ndarray:
         """The parameters' covariance of ``solution``."""
@@ -757,7 +742,7 @@ class MemberEdges:
         # block, so their errors are correlated: the covariance of independent profiles is
         # scaled by the design effect 1 + 2 sum(rho) of the residuals along the outlines.
         return (np.linalg.inv(H) * solution.scale ** 2
-                * self._design_effect(solution.z, solution.usable, solution.kept))
+                * self._design_effect(solution.z, solution.usable, weights > 0))
 
     def _design_effect(self, z: np.ndarray, usable: np.ndarray, kept: np.ndarray) -> float:
         """``1 + 2 sum_lag rho(lag)`` of the standardised residuals ``z`` of neighbouring

@@ -426,7 +426,7 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     # a restart: the chains are fixed by the frame index alone, so any --frames part or --jobs
     # count gives the very numbers of one run (a part that starts inside a chain first solves
     # the chain's earlier frames without keeping them). The reference frame begins a chain.
-    chain = max(1, int(getattr(method, "chain_length", 0) or 0))
+    chain = max(1, int(getattr(methods[0], "chain_length", 0) or 0))
 
     poi_points = poi_xy.astype(np.float64)
     centroid = poi_points.mean(axis=0, keepdims=True)
@@ -475,7 +475,7 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         return (index - reference_frame) // chain
 
     def chains() -> Iterator[list[tuple[int, float, np.ndarray, bool]]]:
-        first = start if chain == 1 else max(0, min(start, reference_frame + chain_of(start) * chain))
+        first = max(0, reference_frame + chain_of(start) * chain)  # the chain's first frame
         group: list[tuple[int, float, np.ndarray, bool]] = []
         for index, time_s, grey in _frames(source, first, stop, undistort):
             if group and chain_of(index) != chain_of(group[-1][0]):
