@@ -99,10 +99,11 @@ def workbench_clip() -> dict | None:
             "truth": true - true[0], "axis": axis, "skip": occluded}
 
 
-def run(clip: dict, method: str, jobs: int, max_frames: int | None, out: Path) -> dict:
+def run(clip: dict, method: str, jobs: int, max_frames: int | None, out: Path,
+        extra: tuple[str, ...] = ()) -> dict:
     cmd = [sys.executable, "-c", _RUNNER, "track", str(clip["video"]), "--mask", str(clip["mask"]),
            "--mm-per-px", "1", "--method", method, "--jobs", str(jobs), "--no-progress",
-           "--out", str(out)]
+           "--out", str(out), *extra]
     if max_frames:
         cmd += ["--max-frames", str(max_frames)]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)

@@ -18,7 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.io import FrameSource, InputError, Roi
+from flow.io import FrameSource, InputError, Roi, as_uint8
 
 
 def board_points(cols: int, rows: int, square_mm: float) -> np.ndarray:
@@ -109,7 +109,7 @@ def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
         for index, _, grey in frames:
             if index % step:
                 continue
-            corners = find_corners(grey, board)
+            corners = find_corners(as_uint8(grey), board)  # the board search takes 8 bits
             if corners is not None:
                 image_points.append(corners)
     if len(image_points) < 3:

@@ -520,6 +520,9 @@ def cmd_track(args: argparse.Namespace) -> int:
         print(f"refflow track: warning: {warning.message}", file=sys.stderr)
     if scale_source.startswith("none"):
         notes.append("no scale given: pass --mm-per-px or --known-length/--between for mm")
+    if source.bit_depth > 8 and not method.full_depth:
+        notes.append(f"{name} takes 8-bit images: the {source.bit_depth}-bit data was rounded to 8 bits for it "
+                     "(the default method measures at full depth)")
     roi = source.roi
     poi_info = {"count": int(len(tracks.x_px)), "source": "features" if sparse else "mask",
                 "mask_pixels": int(mask.sum()), "mask_pixels_outside_roi": outside, "grid_step": args.grid_step}
@@ -529,7 +532,8 @@ def cmd_track(args: argparse.Namespace) -> int:
     run = {
         "tool": "refflow track",
         "input": {"path": str(args.input), "frame_size": list(source.size), "fps": _finite_or_none(source.fps),
-                  "rotation_deg": source.rotation_deg,
+                  "rotation_deg": source.rotation_deg, "bit_depth": source.bit_depth,
+                  "measured_bits": source.bit_depth if method.full_depth else min(source.bit_depth, 8),
                   "header_frames": tracks.header_frames, "frames_decoded": source.frames_read,
                   "frames_measured": len(tracks.frame), "truncated": tracks.truncated},
         "frames": {"first": int(tracks.frame[0]), "stop": int(tracks.frame[-1]) + 1, "requested": args.frames},

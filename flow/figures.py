@@ -16,7 +16,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.io import InputError
+from flow.io import InputError, as_uint8
 from refflow.io import atomic_path
 
 
@@ -29,7 +29,7 @@ def poi_figure(reference: np.ndarray, poi_xy: np.ndarray, corners_xy: np.ndarray
     height, width = reference.shape
     if scale is None:
         scale = max(1, int(round(600 / max(width, 1))))
-    base = cv2.cvtColor(reference, cv2.COLOR_GRAY2BGR)
+    base = cv2.cvtColor(as_uint8(reference), cv2.COLOR_GRAY2BGR)
     base = cv2.resize(base, (width * scale, height * scale), interpolation=cv2.INTER_NEAREST)
     left, right = base.copy(), base.copy()
     radius = max(1, scale // 2)

@@ -63,13 +63,16 @@ class Roi:
         return {"x": self.x, "y": self.y, "width": self.width, "height": self.height}
 
 
-# 16-bit images are mapped to 8 bits by one gain for the whole sequence, taken from the
-# first image: its 99.9th percentile lands here, leaving headroom for brighter frames.
+# 16-bit images are brought to the 8-bit grey scale by one gain for the whole sequence, taken
+# from the first image: its 99.9th percentile lands here, leaving headroom for brighter frames.
+# They stay float32 (full depth, not rounded to 8 bits): the grey scale only keeps the methods'
+# thresholds (grey levels) meaning the same as for 8-bit video.
 DEEP_TARGET_LEVEL = 204.0
 
 
 def deep_image_gain(image: np.ndarray) -> float:
-    """The constant gain that maps a 16-bit sequence whose first image is ``image`` to 8 bits.
+    """The constant gain that brings a 16-bit sequence whose first image is ``image`` to the
+    8-bit grey scale.
 
     High-speed cameras store 10-14-bit data in 16-bit words, often far below full scale: a
     fixed ``>> 8`` would leave an underexposed 10-bit clip (values 20-250) at 0-0 grey.
@@ -78,26 +81,43 @@ def deep_image_gain(image: np.ndarray) -> float:
     return DEEP_TARGET_LEVEL / max(level, 1.0)
 
 
+def significant_bits(image: np.ndarray) -> int:
+    """Bits the data of ``image`` uses (a 12-bit camera's values fit in 12), at least 8."""
+    top = int(image.max()) if image.size else 0
+    return max(8, top.bit_length())
+
+
 # OpenCV's display rotations (CAP_PROP_ORIENTATION_META) as cv2.rotate codes.
 DISPLAY_ROTATIONS = {90: cv2.ROTATE_90_CLOCKWISE, 180: cv2.ROTATE_180, 270: cv2.ROTATE_90_COUNTERCLOCKWISE}
 
 
 def to_grey(image: np.ndarray, gain: float | None = None) -> np.ndarray:
-    """Grey uint8 view of a decoded frame (BGR, BGRA, grey or 16-bit).
+    """Grey view of a decoded frame (BGR, BGRA, grey or 16-bit).
 
-    ``gain``: the sequence's 16-bit to 8-bit gain (:func:`deep_image_gain`); None: ``>> 8``.
+    8-bit frames stay uint8. ``gain``: the sequence's gain for 16-bit data
+    (:func:`deep_image_gain`): the frame comes out float32 on the 8-bit grey scale at full
+    depth (neither rounded nor clipped); None: ``>> 8`` to uint8 (a view for people, e.g.
+    figures, not for measuring).
     """
     if image.dtype == np.uint16:
         if gain is None:
             image = (image >> 8).astype(np.uint8)
         else:
-            image = np.clip(np.rint(image.astype(np.float32) * np.float32(gain)), 0, 255).astype(np.uint8)
+            image = image.astype(np.float32) * np.float32(gain)
     elif image.dtype != np.uint8:
         image = np.clip(image, 0, 255).astype(np.uint8)
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code)
     return image
+
+
+def as_uint8(image: np.ndarray) -> np.ndarray:
+    """``image`` rounded and clipped to uint8 (itself when it is uint8 already): for the OpenCV
+    functions that take 8-bit images only (DIS, Farneback, pyramidal LK, corner detection)."""
+    if image.dtype == np.uint8:
+        return image
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
 def quiet_decoder_logs() -> None:
@@ -217,7 +237,8 @@ class FrameSource:
         truncated: iterating to its end raises :class:`InputError` unless this
         is True, in which case it warns and the decoded frames stand.
 
-    Iterating yields ``(index, time_s, grey_roi)``; :meth:`frames` yields a
+    Iterating yields ``(index, time_s, grey_roi)`` (uint8; float32 on the 8-bit grey scale for
+    16-bit images, see :func:`to_grey`); :meth:`frames` yields a
     range of them. After iterating to the end, ``frames_read`` holds the number
     of decoded frames, ``truncated`` whether the file is truncated and
     ``notes`` what the user should know (e.g. a header frame count that was an
@@ -243,7 +264,8 @@ class FrameSource:
         self.truncated = False
         self.notes: list[str] = []
         self._time_scale = 1.0  # capture time per second of the file's timeline
-        self._deep_gain: float | None = None  # 16-bit images: their constant gain to 8 bits
+        self._deep_gain: float | None = None  # 16-bit images: their constant gain to the 8-bit scale
+        self.bit_depth = 8  # significant bits of the data measured (16-bit images: the first's)
         self.rotation_deg = 0  # a video's display rotation, applied to its frames
         self.header_fps = float("nan")
         if self.is_folder:
@@ -261,9 +283,7 @@ class FrameSource:
             self.fps = float(fps) if fps else float("nan")
             self.header_frames = len(self._files)
             if first.dtype == np.uint16:
-                self._deep_gain = deep_image_gain(first)
-                self.notes.append(f"16-bit images: grey = value x {self._deep_gain:.6g} for every frame (the "
-                                  f"first image's 99.9th percentile -> {DEEP_TARGET_LEVEL:g} of 255)")
+                self._keep_depth(first, significant_bits(first), "16-bit images")
         else:
             quiet_decoder_logs()
             cap = cv2.VideoCapture(str(self.path))
@@ -308,6 +328,15 @@ class FrameSource:
             self.height, self.width = first.shape[:2]
         self.roi = roi if roi is not None else Roi(0, 0, self.width, self.height)
         self.roi.check(self.width, self.height)
+
+    def _keep_depth(self, first: np.ndarray, bits: int, what: str) -> None:
+        """Frames deeper than 8 bits: one gain to the 8-bit grey scale for the whole sequence,
+        from its first frame; measured at full depth (float)."""
+        self._deep_gain = deep_image_gain(first)
+        self.bit_depth = bits
+        self.notes.append(f"{what}: grey = value x {self._deep_gain:.6g} for every frame (the first frame's "
+                          f"99.9th percentile -> {DEEP_TARGET_LEVEL:g} of 255), kept at full depth (float, "
+                          f"not rounded to 8 bits; {bits}-bit data)")
 
     @property
     def size(self) -> tuple[int, int]:

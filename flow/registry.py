@@ -32,6 +32,9 @@ class Method:
     kind = ""
     name: str = ""
     summary: str = ""
+    # False for methods built on OpenCV functions that take 8-bit images only: they see
+    # 10-16-bit data rounded to 8 bits (``flow.io.as_uint8``).
+    full_depth = True
 
     def __init__(self, **params: Any) -> None:
         self._params = dict(params)
@@ -41,23 +44,75 @@ class Method:
         return dict(self._params)
 
 
+# A dense method solves the flow on the pixels the driver reads (POIs, background points) plus
+# this margin: room for the pyramid's coarse levels and the smoothing to settle before the POIs
+# (and for a matching's search, which may ask for more; see :meth:`DenseMethod.window_margin`).
+CROP_MARGIN_PX = 64
+# A window covering more than this share of the frame is not worth cutting out.
+CROP_MAX_SHARE = 0.8
+
+
+def crop_window(shape: tuple[int, int], needed: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """Rows and columns of the bounding box of ``needed`` grown by ``margin`` px and clipped to
+    the frame; None where it would cover most of the frame anyway (or nothing is needed)."""
+    rows, cols = np.nonzero(needed)
+    if rows.size == 0:
+        return None
+    height, width = shape
+    r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, height)
+    c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, width)
+    if (r1 - r0) * (c1 - c0) > CROP_MAX_SHARE * height * width:
+        return None
+    return slice(r0, r1), slice(c0, c1)
+
+
 class DenseMethod(Method):
-    """Base class of dense reference-frame methods: implement :meth:`calc`.
+    """Base class of dense reference-frame methods: implement :meth:`_solve`.
 
     A method may also use what the user says about the structure: the driver calls
     :meth:`bind` once with the reference frame and the POI mask before the frames, and
     after each :meth:`calc` reads :attr:`last_sigma_px`, the method's own standard
     uncertainty of the mean displacement over the POIs (None: the driver estimates one).
+
+    Parameters
+    ----------
+    crop : bool
+        After :meth:`bind`, solve only the window around the pixels the driver reads (their
+        bounding box plus :meth:`window_margin`; default True): a small member in a 4K
+        frame is not solved over the whole frame. The flow outside it is NaN. Without
+        :meth:`bind`, or for frames of another size, the whole frame is solved.
     """
 
     kind = "dense"
     last_sigma_px: tuple[float, float] | None = None
 
+    def __init__(self, *, crop: bool = True, **params: Any) -> None:
+        if not isinstance(crop, bool):
+            raise ValueError(f"crop must be true or false, got {crop!r}")
+        super().__init__(crop=crop, **params)
+        self._crop_on = crop
+        self._window: tuple[slice, slice] | None = None
+        self._bound_shape: tuple[int, ...] | None = None
+
     def bind(self, reference: np.ndarray, mask: np.ndarray, *, read: np.ndarray | None = None) -> None:
         """Prepare for frames compared with ``reference``; ``mask`` (bool, same shape) marks
         the POIs, the structure's pixels; ``read`` (bool, same shape, optional) the other
-        pixels whose flow the driver reads (static background points). A method may leave
-        the flow elsewhere unsolved (NaN). The default ignores all three."""
+        pixels whose flow the driver reads (static background points). The base class cuts
+        out the window it solves (see ``crop``); subclasses that use more call it first."""
+        self._window = None
+        self._bound_shape = reference.shape
+        mask = np.asarray(mask, bool)
+        if not self._crop_on or mask.shape != reference.shape:
+            return
+        margin = self.window_margin(reference.shape)
+        if margin is not None:
+            needed = mask if read is None else mask | np.asarray(read, bool)
+            self._window = crop_window(reference.shape, needed, margin)
+
+    def window_margin(self, shape: tuple[int, ...]) -> int | None:
+        """Pixels of context the method needs around the pixels it is asked for, in a frame
+        of ``shape``; None: it must see the whole frame."""
+        return CROP_MARGIN_PX
 
     def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         """Flow from ``reference`` to ``current``.
@@ -70,8 +125,26 @@ class DenseMethod(Method):
         Returns
         -------
         ndarray, shape (H, W, 2), float32
-            ``flow[..., 0]`` = dx, ``flow[..., 1]`` = dy in pixels.
+            ``flow[..., 0]`` = dx, ``flow[..., 1]`` = dy in pixels (NaN outside the window
+            solved, see ``crop``).
         """
+        check_pair(reference, current)
+        return self._dense(reference, current)
+
+    def _dense(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
+        window = self._window
+        if window is None or reference.shape != self._bound_shape:
+            return self._solve(reference, current, whole_shape=reference.shape)
+        flow = np.full(reference.shape + (2,), np.nan, np.float32)
+        # (Contiguous copies: OpenCV's flow objects refuse strided views.)
+        flow[window] = self._solve(np.ascontiguousarray(reference[window]),
+                                   np.ascontiguousarray(current[window]), whole_shape=reference.shape)
+        return flow
+
+    def _solve(self, reference: np.ndarray, current: np.ndarray, *,
+               whole_shape: tuple[int, ...]) -> np.ndarray:
+        """The flow field of a checked pair, which may be a window cut out of frames of
+        ``whole_shape`` (a method whose reach scales with the frame uses that)."""
         raise NotImplementedError
 
 

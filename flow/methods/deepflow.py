@@ -21,7 +21,7 @@ import numpy as np
 
 from flow.deepmatching import MatchParams, deep_matching, densify, search_radius
 from flow.member import MemberEdges
-from flow.registry import DenseMethod, check_pair, register
+from flow.registry import CROP_MARGIN_PX, DenseMethod, check_pair, register
 from flow.variational import VariationalParams, Workspace, refine
 
 _MATCH_FIELDS = {f.name for f in dataclasses.fields(MatchParams)}
@@ -55,26 +55,20 @@ def _resolve(preset: str, overrides: dict[str, Any]) -> dict[str, Any]:
     return merged
 
 
-# The dense flow is solved on the pixels the driver reads (POIs, background points) plus this
-# margin, or the matching's search radius where that is larger: room for the matching's
-# patches and search, and for the variational part's smoothing to settle before the POIs.
-CROP_MARGIN_PX = 64
-# A window covering more than this share of the frame is not worth cutting out.
-CROP_MAX_SHARE = 0.8
+def _matching_margin(match: MatchParams, shape: tuple[int, ...]) -> int | None:
+    """Context a matching needs around the pixels asked for in a frame of ``shape``: the
+    frame's search radius, so that cutting out a window does not shorten the matching's reach
+    (None where the whole image is searched: it is solved whole)."""
+    radius = search_radius(match, shape)
+    return max(CROP_MARGIN_PX, int(np.ceil(radius))) if radius > 0 else None
 
 
-def crop_window(shape: tuple[int, int], needed: np.ndarray, margin: int) -> tuple[slice, slice] | None:
-    """Rows and columns of the bounding box of ``needed`` grown by ``margin`` px and clipped to
-    the frame; None where it would cover most of the frame anyway (or nothing is needed)."""
-    rows, cols = np.nonzero(needed)
-    if rows.size == 0:
-        return None
-    height, width = shape
-    r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, height)
-    c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, width)
-    if (r1 - r0) * (c1 - c0) > CROP_MAX_SHARE * height * width:
-        return None
-    return slice(r0, r1), slice(c0, c1)
+def _reach_of(match: MatchParams, whole_shape: tuple[int, ...]) -> MatchParams:
+    """``match`` with the search radius of a frame of ``whole_shape`` made explicit, so that a
+    window cut out of that frame is searched as far as the frame would be."""
+    if match.ngh_rad is not None:
+        return match
+    return dataclasses.replace(match, ngh_rad=search_radius(match, whole_shape))
 
 
 # Frames of one chain (see the driver, :func:`flow.track.track_dense`) are measured in order.
@@ -135,8 +129,9 @@ class DeepFlow(DenseMethod):
         in full.
     crop : bool
         Solve the dense flow only around the pixels that are read (the POIs' and background
-        points' bounding box plus :data:`CROP_MARGIN_PX` or the search radius, default True);
-        the flow elsewhere is NaN. Without :meth:`bind` the whole frame is solved.
+        points' bounding box plus :data:`flow.registry.CROP_MARGIN_PX` or the whole frame's
+        search radius, whichever is larger; default True); the flow elsewhere is NaN.
+        Without :meth:`bind` the whole frame is solved.
     downscale, ngh_rad, max_patch, ... : matching parameters
     alpha, beta, delta, gamma, kappa, sigma, eta, n_outer, n_sor, omega, ... :
         variational parameters; ``beta = 0`` switches the matching term (and
@@ -151,14 +146,10 @@ class DeepFlow(DenseMethod):
                  warm: bool = True, **params: Any) -> None:
         merged = _resolve(preset, params)
         self._match, self._var = _split(merged)
-        for label, value, optional in (("member", member, True), ("crop", crop, False),
-                                       ("warm", warm, False)):
+        for label, value, optional in (("member", member, True), ("warm", warm, False)):
             if not (isinstance(value, bool) or (optional and value is None)):
                 raise ValueError(f"{label} must be true or false, got {value!r}")
         self._member_on = self.member_default if member is None else member
-        self._crop_on = crop
-        self._window: tuple[slice, slice] | None = None
-        self._bound_shape: tuple[int, ...] | None = None
         # Frames the driver hands one instance in order (0: each frame on its own); set by bind.
         self._warm_on = warm
         self.chain_length = 0
@@ -179,22 +170,11 @@ class DeepFlow(DenseMethod):
         )
 
     def bind(self, reference: np.ndarray, mask: np.ndarray, *, read: np.ndarray | None = None) -> None:
+        super().bind(reference, mask, read=read)
         self._member = None
         mask = np.asarray(mask, bool)
-        self._window = None
-        self._window_match = self._match
-        self._bound_shape = reference.shape
         self._chaining = False
         self._warm_flow = None
-        if self._crop_on and mask.shape == reference.shape:
-            needed = mask if read is None else mask | np.asarray(read, bool)
-            # The search radius of the whole frame, so that cutting out a window does not
-            # shorten the matching's reach.
-            radius = search_radius(self._match, reference.shape)
-            if radius > 0:  # (<= 0: the whole image is searched, so it is solved whole)
-                self._window = crop_window(reference.shape, needed,
-                                           max(CROP_MARGIN_PX, int(np.ceil(radius))))
-                self._window_match = dataclasses.replace(self._match, ngh_rad=radius)
         # The driver reads chain_length after bind: without a member to track (or with
         # background points, whose flow only the dense solve gives) frames stand alone.
         self.chain_length = 0
@@ -213,13 +193,8 @@ class DeepFlow(DenseMethod):
         self._prior_cols = np.clip(np.rint(inward_x).astype(np.intp), 0, width - 1)
         self._prior_rows = np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1)
 
-    def _dense(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
-        window = self._window
-        if window is None or reference.shape != self._bound_shape:
-            return self._solve_dense(reference, current, self._match)
-        flow = np.full(reference.shape + (2,), np.nan, np.float32)
-        flow[window] = self._solve_dense(reference[window], current[window], self._window_match)
-        return flow
+    def window_margin(self, shape: tuple[int, ...]) -> int | None:
+        return _matching_margin(self._match, shape)
 
     def restart(self) -> None:
         """Begin a chain: the next frame gets the full measurement, the following ones (until
@@ -229,8 +204,10 @@ class DeepFlow(DenseMethod):
         self._key_mismatch = float("nan")
         self._theta = None
 
-    def _solve_dense(self, reference: np.ndarray, current: np.ndarray, match: MatchParams) -> np.ndarray:
+    def _solve(self, reference: np.ndarray, current: np.ndarray, *,
+               whole_shape: tuple[int, ...]) -> np.ndarray:
         if self._var.beta > 0:
+            match = _reach_of(self._match, whole_shape)
             grid = deep_matching(reference, current, match)
             match_flow, match_weight = densify(grid, reference.shape, nearest=True)
             return refine(
@@ -323,12 +300,14 @@ class DeepMatchingDense(DenseMethod):
     ----------
     interpolation : {"linear", "nearest"}
         Interpolation between atomic-patch centres.
+    crop : bool
+        Solve only around the pixels read (see :class:`DeepFlow`).
     downscale, ngh_rad, max_patch, ... : see :class:`flow.deepmatching.MatchParams`.
     """
 
     summary = "DeepMatching quasi-dense matches interpolated to a dense field"
 
-    def __init__(self, *, interpolation: str = "linear", **params: Any) -> None:
+    def __init__(self, *, interpolation: str = "linear", crop: bool = True, **params: Any) -> None:
         if interpolation not in ("linear", "nearest"):
             raise ValueError(f"interpolation must be 'linear' or 'nearest', got {interpolation!r}")
         unknown = set(params) - _MATCH_FIELDS
@@ -338,10 +317,13 @@ class DeepMatchingDense(DenseMethod):
             )
         self._match = MatchParams(**params)
         self._nearest = interpolation == "nearest"
-        super().__init__(interpolation=interpolation, **dataclasses.asdict(self._match))
+        super().__init__(crop=crop, interpolation=interpolation, **dataclasses.asdict(self._match))
 
-    def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
-        check_pair(reference, current)
-        grid = deep_matching(reference, current, self._match)
+    def window_margin(self, shape: tuple[int, ...]) -> int | None:
+        return _matching_margin(self._match, shape)
+
+    def _solve(self, reference: np.ndarray, current: np.ndarray, *,
+               whole_shape: tuple[int, ...]) -> np.ndarray:
+        grid = deep_matching(reference, current, _reach_of(self._match, whole_shape))
         flow, _ = densify(grid, reference.shape, nearest=self._nearest)
         return flow

@@ -21,6 +21,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from flow.io import as_uint8
 from flow.registry import Method, register
 
 _KLT_DEFAULTS = dict(detector="harris", max_corners=200, quality_level=0.01, min_distance=5,
@@ -42,6 +43,7 @@ class SparseMethod(Method):
     """
 
     kind = "sparse"
+    full_depth = False
 
     def __init__(self, **params: Any) -> None:
         unknown = set(params) - set(_KLT_DEFAULTS)
@@ -58,7 +60,7 @@ class SparseMethod(Method):
         if p["use_mask"] and mask is not None:
             region = mask.astype(np.uint8) * 255
         corners = cv2.goodFeaturesToTrack(
-            reference, maxCorners=p["max_corners"], qualityLevel=p["quality_level"],
+            as_uint8(reference), maxCorners=p["max_corners"], qualityLevel=p["quality_level"],
             minDistance=p["min_distance"], mask=region, blockSize=p["block_size"],
             useHarrisDetector=p["detector"] == "harris", k=0.04)
         if corners is None:
@@ -78,6 +80,7 @@ class SparseMethod(Method):
         p = self._params
         win = (p["window"], p["window"])
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+        image0, image1 = as_uint8(image0), as_uint8(image1)  # pyramidal LK takes 8-bit images
         if guess is None:
             new, status, _ = cv2.calcOpticalFlowPyrLK(image0, image1, points.reshape(-1, 1, 2), None,
                                                       winSize=win, maxLevel=p["levels"], criteria=criteria)

@@ -18,13 +18,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.registry import DenseMethod, check_pair, register
-
-
-def _as_uint8(image: np.ndarray) -> np.ndarray:
-    if image.dtype == np.uint8:
-        return image
-    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+from flow.io import as_uint8
+from flow.registry import DenseMethod, register
 
 
 def _has_optflow() -> bool:
@@ -34,6 +29,8 @@ def _has_optflow() -> bool:
 class _OpenCVDense(DenseMethod):
     """Shared plumbing: build the OpenCV object lazily, one per instance (not thread-safe)."""
 
+    full_depth = False
+
     def __init__(self, **params: Any) -> None:
         super().__init__(**params)
         self._engine = None
@@ -41,11 +38,11 @@ class _OpenCVDense(DenseMethod):
     def _build(self) -> Any:
         raise NotImplementedError
 
-    def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
-        check_pair(reference, current)
+    def _solve(self, reference: np.ndarray, current: np.ndarray, *,
+               whole_shape: tuple[int, ...]) -> np.ndarray:
         if self._engine is None:
             self._engine = self._build()
-        flow = self._engine.calc(_as_uint8(reference), _as_uint8(current), None)
+        flow = self._engine.calc(as_uint8(reference), as_uint8(current), None)
         return np.asarray(flow, dtype=np.float32)
 
 
@@ -57,8 +54,8 @@ if _has_optflow():
 
         summary = "OpenCV contrib DeepFlow (Weinzaepfel 2013) without DeepMatching; dense, vs reference frame"
 
-        def __init__(self) -> None:
-            super().__init__()
+        def __init__(self, *, crop: bool = True) -> None:
+            super().__init__(crop=crop)
 
         def _build(self) -> Any:
             return cv2.optflow.createOptFlow_DeepFlow()
@@ -87,10 +84,10 @@ class DIS(_OpenCVDense):
     summary = "OpenCV DIS (Kroeger 2016), preset ultrafast|fast|medium, full-resolution refinement; dense, vs reference frame"
 
     def __init__(self, *, preset: str = "medium", finest_scale: int | None = 0,
-                 refinement_iterations: int | None = 10) -> None:
+                 refinement_iterations: int | None = 10, crop: bool = True) -> None:
         if preset not in _DIS_PRESETS:
             raise ValueError(f"DIS preset {preset!r} unknown; use one of {', '.join(_DIS_PRESETS)}")
-        super().__init__(preset=preset, finest_scale=finest_scale,
+        super().__init__(crop=crop, preset=preset, finest_scale=finest_scale,
                          refinement_iterations=refinement_iterations)
 
     def _build(self) -> Any:
@@ -107,17 +104,19 @@ class Farneback(DenseMethod):
     """Farneback polynomial-expansion flow (keyword parameters as in OpenCV)."""
 
     summary = "OpenCV Farneback polynomial expansion (2003); dense, vs reference frame"
+    full_depth = False
 
     def __init__(self, *, pyr_scale: float = 0.5, levels: int = 4, winsize: int = 15,
-                 iterations: int = 5, poly_n: int = 7, poly_sigma: float = 1.5) -> None:
-        super().__init__(pyr_scale=pyr_scale, levels=levels, winsize=winsize,
+                 iterations: int = 5, poly_n: int = 7, poly_sigma: float = 1.5,
+                 crop: bool = True) -> None:
+        super().__init__(crop=crop, pyr_scale=pyr_scale, levels=levels, winsize=winsize,
                          iterations=iterations, poly_n=poly_n, poly_sigma=poly_sigma)
 
-    def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
-        check_pair(reference, current)
+    def _solve(self, reference: np.ndarray, current: np.ndarray, *,
+               whole_shape: tuple[int, ...]) -> np.ndarray:
         p = self._params
         flow = cv2.calcOpticalFlowFarneback(
-            _as_uint8(reference), _as_uint8(current), None, p["pyr_scale"], p["levels"],
+            as_uint8(reference), as_uint8(current), None, p["pyr_scale"], p["levels"],
             p["winsize"], p["iterations"], p["poly_n"], p["poly_sigma"],
             cv2.OPTFLOW_FARNEBACK_GAUSSIAN)
         return np.asarray(flow, dtype=np.float32)
@@ -141,8 +140,8 @@ if _has_optflow() and hasattr(cv2.optflow, "DualTVL1OpticalFlow_create"):
         summary = "OpenCV contrib dual TV-L1 (Zach 2007); dense, vs reference frame; slow"
 
         def __init__(self, *, lambda_: float = 0.05, warps: int = 10, scales: int = 6,
-                     epsilon: float = 0.001) -> None:
-            super().__init__(lambda_=lambda_, warps=warps, scales=scales, epsilon=epsilon)
+                     epsilon: float = 0.001, crop: bool = True) -> None:
+            super().__init__(crop=crop, lambda_=lambda_, warps=warps, scales=scales, epsilon=epsilon)
 
         def _build(self) -> Any:
             p = self._params

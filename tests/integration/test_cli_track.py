@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from flow.cli import main
+from flow.io import DEEP_TARGET_LEVEL
 
 W, H, N = 160, 120, 30
 OCCLUDED = range(12, 17)
@@ -603,6 +604,38 @@ def test_16_bit_images_keep_their_detail(tmp_path, low, high) -> None:
     assert np.allclose(dx, shifts, atol=0.1), dx
     meta = json.loads(out.with_suffix(".json").read_text())
     assert any(note.startswith("16-bit images: grey = value x") for note in meta["notes"])
+
+
+def test_deep_data_is_measured_at_full_depth(tmp_path) -> None:
+    """A faint texture in 12-bit data (+-11 counts, +-0.6 grey levels on the 8-bit scale):
+    the default method reads it at full depth, more accurately than from the same frames
+    rounded to 8 bits (as they were before); an 8-bit-only method says it rounds."""
+    shifts = [0.0, 0.3, 0.6, 0.9, 1.2]
+    gain = DEEP_TARGET_LEVEL / 4000.0
+    errors = {}
+    for depth in (12, 8):
+        folder = tmp_path / f"bits{depth}"
+        folder.mkdir()
+        for i, shift in enumerate(shifts):
+            data = np.rint(2000 + (texture(shift) - 128) * 0.5)
+            data[:, :8] = 4000  # a bright edge of the view sets the sequence's gain
+            image = (data.astype(np.uint16) if depth == 12
+                     else np.clip(np.rint(data * gain), 0, 255).astype(np.uint8))
+            cv2.imwrite(str(folder / f"f{i}.png"), image)
+        out = tmp_path / f"bits{depth}.csv"
+        assert main(["track", str(folder), "--fps", "100", "--rect", "40,30,80,60",
+                     "--out", str(out), "--no-progress"]) == 0
+        dx = np.array([float(r["dx_px"]) for r in read_csv(out)])
+        errors[depth] = float(np.abs(dx - shifts).max())
+        meta = json.loads(out.with_suffix(".json").read_text())
+        assert meta["input"]["bit_depth"] == depth and meta["input"]["measured_bits"] == depth
+    assert errors[12] < 0.08 and errors[12] < 0.8 * errors[8], errors
+    out = tmp_path / "dis.csv"
+    assert main(["track", str(tmp_path / "bits12"), "--fps", "100", "--rect", "40,30,80,60",
+                 "--method", "dis", "--out", str(out), "--no-progress"]) == 0
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["input"]["measured_bits"] == 8
+    assert any("12-bit data was rounded to 8 bits" in note for note in meta["notes"])
 
 
 @pytest.mark.parametrize("problem", ["mis-sized image", "corrupt image", "parent is a file", "truncated mp4"])

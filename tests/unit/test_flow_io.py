@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from flow.io import FrameSource, InputError, Roi
+from flow.io import FrameSource, InputError, Roi, as_uint8, deep_image_gain, significant_bits
 from flow.poi import load_mask, poi_coordinates, polygon_mask, rect_mask
 
 
@@ -85,3 +85,37 @@ def test_video_fps_is_checked_too_and_ranges_skip_decoding(tmp_path) -> None:
     assert [f[1] for f in picked] == pytest.approx([0.08, 0.12, 0.16])
     assert abs(int(picked[0][2].mean()) - 80) <= 3
     assert not source.truncated  # stopped early: nothing to judge
+
+
+def test_sixteen_bit_images_are_measured_at_full_depth(tmp_path) -> None:
+    """12-bit data in 16-bit images comes out on the 8-bit grey scale but not rounded to it:
+    value x gain exactly, as float32; 8-bit images stay uint8; the data's bits are recorded."""
+    rng = np.random.default_rng(3)
+    first = rng.integers(1000, 3000, (12, 16)).astype(np.uint16)
+    first[0, 0] = 4000  # 12-bit data: 4000 < 4096
+    cv2.imwrite(str(tmp_path / "a.png"), first)
+    cv2.imwrite(str(tmp_path / "b.png"), first + np.uint16(1))  # one count brighter
+    source = FrameSource(tmp_path, fps=10.0)
+    frames = [grey for _, _, grey in source]
+    gain = np.float32(deep_image_gain(first))
+    assert source.bit_depth == 12
+    assert frames[0].dtype == np.float32
+    assert np.array_equal(frames[0], first.astype(np.float32) * gain)
+    # One count of 12-bit data is 0.05 grey levels here: kept, where 8 bits would lose it.
+    assert np.allclose(frames[1] - frames[0], gain, rtol=1e-3)
+    eight = tmp_path / "eight"
+    eight.mkdir()
+    cv2.imwrite(str(eight / "a.png"), (first >> 4).astype(np.uint8))
+    source = FrameSource(eight, fps=10.0)
+    assert source.bit_depth == 8 and next(iter(source))[2].dtype == np.uint8
+
+
+def test_as_uint8_and_significant_bits() -> None:
+    image = np.array([[-3.0, 0.4, 0.6], [254.5, 255.2, 900.0]], np.float32)
+    assert as_uint8(image).tolist() == [[0, 0, 1], [254, 255, 255]]
+    eight = np.zeros((2, 2), np.uint8)
+    assert as_uint8(eight) is eight
+    assert significant_bits(np.array([0, 255], np.uint16)) == 8
+    assert significant_bits(np.array([0, 1023], np.uint16)) == 10
+    assert significant_bits(np.array([0, 2460], np.uint16)) == 12
+    assert significant_bits(np.array([0, 65535], np.uint16)) == 16

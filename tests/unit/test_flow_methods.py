@@ -126,3 +126,34 @@ def test_klt_ref_follows_features_against_reference(tmp_path) -> None:
     tracks = track_sparse(FrameSource(tmp_path, fps=30.0), registry.get_method("klt-ref", use_mask=True), mask)
     result = measure(tracks)
     assert np.abs(result.filtered.dx - truth).max() < 0.15
+
+
+@pytest.mark.parametrize("name", DENSE + ["deepmatching"])
+def test_dense_methods_solve_only_the_window_they_are_asked_for(name: str) -> None:
+    """Bound to a small POI mask in a large frame, every dense method solves the POIs' window
+    (bounding box + margin) and leaves the rest NaN; it reads the POIs as the whole-frame
+    solve does; ``crop=False`` and a call without bind solve the whole frame."""
+    params = FAST_PARAMS.get(name, {})
+    reference = as_u8(texture(480, 320, seed=4))
+    current = as_u8(texture(480, 320, 1.3, -0.6, seed=4))
+    mask = np.zeros(reference.shape, bool)
+    mask[150:170, 200:240] = True
+    method = registry.get_method(name, **params)
+    method.bind(reference, mask)
+    flow = method.calc(reference, current)
+    solved = np.isfinite(flow[..., 0])
+    rows, cols = np.nonzero(solved)
+    margin = method.window_margin(reference.shape)
+    assert margin >= registry.CROP_MARGIN_PX
+    assert (rows.min(), rows.max() + 1) == (max(150 - margin, 0), min(170 + margin, 320))
+    assert (cols.min(), cols.max() + 1) == (max(200 - margin, 0), min(240 + margin, 480))
+    assert solved.sum() == (np.ptp(rows) + 1) * (np.ptp(cols) + 1) < 0.8 * reference.size
+    whole = registry.get_method(name, crop=False, **params)
+    whole.bind(reference, mask)
+    full = whole.calc(reference, current)
+    assert np.isfinite(full).all()
+    assert np.array_equal(registry.get_method(name, **params).calc(reference, current), full)
+    at_window, at_whole = flow[mask].mean(axis=0), full[mask].mean(axis=0)
+    tolerance = 0.15 if name == "deepmatching" else 0.05
+    assert np.abs(at_window - (1.3, -0.6)).max() < tolerance, at_window
+    assert np.abs(at_window - at_whole).max() < tolerance, (at_window, at_whole)
