@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from flow import registry
+from flow.camfiles import companion_files
 from flow.io import FrameSource, InputError, Roi
 from refflow.io import atomic_paths, json_text, versions, write_json
 
@@ -361,6 +362,8 @@ def _input_paths(args: argparse.Namespace) -> list[tuple[str, Path]]:
         if isinstance(value, str) and value and Path(value).exists():
             found.append(("the video" if option == "input" else "--" + option.replace("_", "-"), Path(value)))
     found += [("a part", Path(part)) for part in getattr(args, "parts", None) or []]
+    if isinstance(getattr(args, "input", None), str):  # a camera header's frames file (.mraw)
+        found += [("the recording's frames", path) for path in companion_files(args.input)]
     return found
 
 
@@ -652,7 +655,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def _add_input_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("input", help="video file (any format OpenCV reads) or folder of images")
+    p.add_argument("input", help="video file (any format OpenCV reads), folder of images, or a high-speed "
+                   "camera recording (Photron .cih/.cihx with its .mraw, Phantom .cine)")
     p.add_argument("--roi", help="crop X,Y,W,H in raw full-frame pixels (4K frames are never processed whole)")
     p.add_argument("--fps", type=float, help="frame rate of an image folder (required there); on a video, the capture rate where it "
                    "differs from the file's playback rate (slow motion, high-speed export): time_s follows it")

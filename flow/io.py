@@ -23,11 +23,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from flow.camfiles import CAMERA_SUFFIXES, open_camera_file
+from flow.errors import InputError
+
+__all__ = ["CAMERA_SUFFIXES", "IMAGE_SUFFIXES", "FrameSource", "InputError", "Roi", "as_uint8", "to_grey"]
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
-
-
-class InputError(ValueError):
-    """Bad user input; the message names the problem and what to do."""
 
 
 @dataclass(frozen=True)
@@ -268,7 +269,10 @@ class FrameSource:
         self.bit_depth = 8  # significant bits of the data measured (16-bit images: the first's)
         self.rotation_deg = 0  # a video's display rotation, applied to its frames
         self.header_fps = float("nan")
-        if self.is_folder:
+        self._camera = None if self.is_folder else open_camera_file(self.path)
+        if self._camera is not None:
+            self._open_camera(fps)
+        elif self.is_folder:
             self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
             if not self._files:
                 raise InputError(f"folder {str(self.path)!r} holds no images ({', '.join(IMAGE_SUFFIXES)})")
@@ -338,6 +342,26 @@ class FrameSource:
                           f"99.9th percentile -> {DEEP_TARGET_LEVEL:g} of 255), kept at full depth (float, "
                           f"not rounded to 8 bits; {bits}-bit data)")
 
+    def _open_camera(self, fps: float | None) -> None:
+        """A high-speed camera recording (:mod:`flow.camfiles`): size, rate, depth from its header."""
+        camera = self._camera
+        self.width, self.height = camera.width, camera.height
+        self.header_frames = camera.frame_count
+        # The rate of the frames stored: a Photron file saved with a step keeps every n-th frame.
+        self.header_fps = camera.fps / camera.frame_step
+        if camera.frame_step > 1:
+            self.notes.append(f"{self.path.name}: recorded at {camera.fps:g} fps, every {camera.frame_step}th "
+                              f"frame saved (Save Step): frames are {1 / self.header_fps:.6g} s apart")
+        if camera.timestamps_note:
+            self.notes.append(f"{self.path.name}: {camera.timestamps_note}")
+        self.fps = float(fps) if fps else self.header_fps
+        if fps and abs(self.fps / self.header_fps - 1) > 1e-3:
+            self.notes.append(f"--fps {self.fps:g} overrides the {self.header_fps:g} fps of the file's header: "
+                              "time_s = index / --fps")
+        first = camera.read(0)
+        if camera.dtype == np.uint16:
+            self._keep_depth(first, camera.bit_depth, f"{camera.bit_depth}-bit camera data")
+
     @property
     def size(self) -> tuple[int, int]:
         """Full frame ``(width, height)``."""
@@ -358,10 +382,21 @@ class FrameSource:
         need it) but are not converted; stopping early skips the truncation check.
         """
         self.frames_read = 0
-        if self.is_folder:
+        if self._camera is not None:
+            yield from self._iter_camera(start, stop)
+        elif self.is_folder:
             yield from self._iter_folder(start, stop)
         else:
             yield from self._iter_video(start, stop)
+
+    def _iter_camera(self, start: int, stop: int | None) -> Iterator[tuple[int, float, np.ndarray]]:
+        camera = self._camera
+        own_clock = math.isclose(self.fps, self.header_fps, rel_tol=1e-3)
+        end = camera.frame_count if stop is None else min(stop, camera.frame_count)
+        for index in range(start, end):
+            self.frames_read = index + 1  # frames are read by position: none before start
+            time_s = camera.time_s(index) if own_clock else index / self.fps
+            yield index, time_s, self._crop(camera.read(index))
 
     def _iter_folder(self, start: int, stop: int | None) -> Iterator[tuple[int, float, np.ndarray]]:
         for index, file in enumerate(self._files[:stop]):
