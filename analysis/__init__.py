@@ -7,7 +7,8 @@ Reads files only (``docs/formats.md``); never imports ``sim`` or ``flow``.
 * ``metrics``: RMSE (mm, px), maxima, bias, drift, spectral peaks with
   aliases, occlusion and recovery metrics; keys carry their units.
 * ``spectra``: Welch PSD, peak picking, alias prediction.
-* ``modal``: multi-point modal identification (FDD + SSI-cov) vs the model.
+* ``modal``: multi-point modal identification (FDD + SSI-cov, shared with the
+  tool in ``refflow.modal``) vs the model.
 * ``figures``, ``report``, ``table1``: Fig. 6-10, summary tables, Table 1.
 
 Command line: ``python -m analysis {evaluate,summary,table1,figures,modal} --help``.

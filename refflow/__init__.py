@@ -1,5 +1,6 @@
 """Neutral infrastructure shared by ``sim``, ``flow`` and ``analysis``.
 
-Only file plumbing lives here (atomic writes, JSON sidecars, config hashing,
-package versions): nothing that could let the measurement see the ground truth.
+File plumbing (atomic writes, JSON sidecars, config hashing, package versions) and
+output-only modal identification (``refflow.modal``: from a response alone, no model):
+nothing that could let the measurement see the ground truth. It imports none of the three.
 """

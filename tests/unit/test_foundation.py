@@ -16,7 +16,8 @@ from refflow.io import atomic_path, config_hash, source_digest, write_json
 ROOT = Path(__file__).resolve().parents[2]
 
 # package -> packages it must never import (STYLE.md "three boundaries")
-FORBIDDEN = {"flow": {"sim", "analysis"}, "sim": {"flow"}, "analysis": {"flow", "sim"}}
+FORBIDDEN = {"flow": {"sim", "analysis"}, "sim": {"flow"}, "analysis": {"flow", "sim"},
+             "refflow": {"flow", "sim", "analysis"}}  # the shared package stands below all three
 
 
 def _imported_top_levels(path: Path) -> set[str]:
