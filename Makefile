@@ -10,13 +10,23 @@ export PATH := $(CURDIR)/$(BIN):$(PATH)
 export PYOPENGL_PLATFORM ?= egl
 export MPLBACKEND ?= Agg
 
-.PHONY: all test lint bench clean-results
+.PHONY: all test lint bench clean-results browser
 
 all: $(STAMP)
 	$(BIN)/snakemake --cores $(CORES) --rerun-incomplete all
 
-test: $(STAMP)
+test: $(STAMP) browser
 	$(BIN)/python -m pytest
+
+# The browser tests of `refflow gui` drive Debian's chromium through its chromium-driver:
+# installed here where the machine allows it (root and apt-get); elsewhere they skip and say why.
+browser:
+	@if command -v chromedriver >/dev/null 2>&1 && { command -v chromium || command -v chromium-browser; } >/dev/null 2>&1; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	  echo "installing chromium and chromium-driver for the browser tests (apt-get)"; \
+	  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null; } \
+	    || echo "could not install chromium: the browser tests will skip"; \
+	else echo "no chromium/chromedriver and no root apt-get to install them: the browser tests will skip"; fi
 
 lint: $(STAMP)
 	$(BIN)/ruff check sim flow analysis refflow tests benchmarks

@@ -1,0 +1,542 @@
+"""The local server of ``refflow gui``: the page's static files and a small JSON API.
+
+Standard library only (:class:`http.server.ThreadingHTTPServer`), bound to 127.0.0.1. The
+measurement itself is ``refflow track`` run as a child process (the same validation and
+messages as in the shell; cancel = SIGTERM, after which the tool leaves no file behind).
+
+API (JSON bodies; errors are ``{"error": one line}`` with a 4xx status):
+
+``GET /api/info``                 the video, the methods, the output folder, a saved project
+``GET /api/frame?i=N``            frame N as a JPEG (grey, as measured; decoded on demand)
+``POST /api/scale``               mm per pixel of a known length between two clicked points
+``POST /api/project``             save the project JSON and its mask PNGs; the command lines
+``POST /api/pois``                save, then ``refflow pois``: the POIs next to KLT's corners
+``POST /api/run``, ``GET /api/run``, ``POST /api/cancel``    run ``refflow track``; progress
+``GET /api/result?name=RUN``      the run's time history and amplitude spectra
+``GET /api/file?name=FILE``       a file of the output folder (CSV, sidecar, project, PNG)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+from collections import OrderedDict
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+import numpy as np
+
+from flow.gui import project as projects
+from flow.gui.paths import OutputFolder, PathRefused
+from flow.io import FrameSource, InputError
+
+STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
+                ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml", ".png": "image/png"}
+FILE_TYPES = {".csv": "text/csv; charset=utf-8", ".json": "application/json", ".png": "image/png"}
+MAX_BODY = 1 << 20
+# tqdm's bar on the tool's stderr: " 45%|####5     | 27/60 [00:00<00:00, 49.9frame/s]"
+PROGRESS = re.compile(r"(\d+)(?:/(\d+))? \[")
+
+
+def static_files() -> dict[str, tuple[bytes, str]]:
+    """The page's assets shipped in the package (``flow/gui/static``): name -> (bytes, type)."""
+    folder = resources.files("flow.gui") / "static"
+    found = {}
+    for entry in folder.iterdir():
+        suffix = Path(entry.name).suffix
+        if entry.is_file() and suffix in STATIC_TYPES:
+            found[entry.name] = (entry.read_bytes(), STATIC_TYPES[suffix])
+    return found
+
+
+def finite_list(values: Any) -> list[float | None]:
+    """Floats for JSON: NaN and infinities become null."""
+    return [float(v) if math.isfinite(v) else None for v in np.asarray(values, float).ravel()]
+
+
+class Frames:
+    """Frames of the video as JPEGs, decoded on demand with :class:`FrameSource`.
+
+    One reader is kept open between requests, so stepping forward decodes only the frames in
+    between; a step back starts it again. A few encoded frames are cached (bounded by bytes),
+    never the video.
+    """
+
+    def __init__(self, source: FrameSource, *, cache_bytes: int = 64 << 20) -> None:
+        self.source = source
+        self.lock = threading.Lock()
+        self.cache: OrderedDict[int, bytes] = OrderedDict()
+        self.cache_bytes = cache_bytes
+        self._reader: Any = None
+        self._next = 0
+
+    def _restart(self, start: int) -> None:
+        if self._reader is not None:
+            self._reader.close()
+        self._reader, self._next = self.source.frames(start), start
+
+    def _decode(self, index: int) -> np.ndarray | None:
+        if self._reader is None or index < self._next:
+            self._restart(index)
+        try:
+            for i, _, grey in self._reader:
+                self._next = i + 1
+                if i == index:
+                    return grey
+        except InputError:
+            self._reader = None  # an unreadable image of a folder: the next request starts again
+            raise
+        self._reader = None
+        return None
+
+    def jpeg(self, index: int) -> bytes | None:
+        import cv2
+
+        from flow.io import as_uint8
+
+        with self.lock:
+            if index in self.cache:
+                self.cache.move_to_end(index)
+                return self.cache[index]
+            grey = self._decode(index)
+            if grey is None:
+                return None
+            ok, data = cv2.imencode(".jpg", as_uint8(grey), [cv2.IMWRITE_JPEG_QUALITY, 92])
+            blob = data.tobytes()
+            self.cache[index] = blob
+            while sum(map(len, self.cache.values())) > self.cache_bytes and len(self.cache) > 1:
+                self.cache.popitem(last=False)
+            return blob
+
+    def close(self) -> None:
+        with self.lock:
+            if self._reader is not None:
+                self._reader.close()
+                self._reader = None
+
+
+class Job:
+    """One ``refflow track`` child process, its progress and its last words."""
+
+    def __init__(self, argv: list[str], *, name: str, cwd: Path) -> None:
+        self.argv, self.name = argv, name
+        self.done, self.total = 0, None
+        self.lines: list[str] = []
+        self.state, self.message, self.returncode = "running", "starting refflow track", None
+        self.cancelled = False
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.proc = subprocess.Popen([sys.executable, "-m", "flow.cli", *argv], cwd=cwd, env=env,
+                                     stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        self.thread = threading.Thread(target=self._follow, daemon=True)
+        self.thread.start()
+
+    def _line(self, text: str) -> None:
+        text = text.strip()
+        if not text:
+            return
+        match = PROGRESS.search(text)
+        if match and ("|" in text or "frame" in text) and not text.startswith("refflow"):
+            self.done = int(match.group(1))
+            self.total = int(match.group(2)) if match.group(2) else None
+            self.message = f"measuring: frame {self.done}" + (f" of {self.total}" if self.total else "")
+            return
+        self.lines = (self.lines + [text])[-40:]
+        if text.startswith("refflow track: "):
+            self.message = text
+
+    def _follow(self) -> None:
+        pending = b""
+        stream = self.proc.stdout
+        while chunk := stream.read1(4096):
+            pending += chunk
+            *parts, pending = re.split(rb"[\r\n]", pending)
+            for part in parts:
+                self._line(part.decode("utf-8", "replace"))
+        self._line(pending.decode("utf-8", "replace"))
+        self.returncode = rc = self.proc.wait()
+        if rc == 0:
+            self.state = "done"
+            self.done = self.total or self.done
+        elif self.cancelled and rc in (130, 143, -signal.SIGTERM, -signal.SIGINT):
+            self.state, self.message = "cancelled", "cancelled: refflow track stopped, no output written"
+        else:
+            self.state = "failed"
+            errors = [ln for ln in self.lines if ln.startswith("refflow track: error:")]
+            self.message = errors[-1] if errors else (
+                f"refflow track stopped with exit status {rc}: " + (self.lines[-1] if self.lines else "no message"))
+
+    def cancel(self) -> None:
+        if self.proc.poll() is None:
+            self.cancelled = True
+            self.proc.send_signal(signal.SIGTERM)
+
+    def status(self) -> dict[str, Any]:
+        return {"state": self.state, "done": self.done, "total": self.total, "message": self.message,
+                "name": self.name, "returncode": self.returncode, "log": self.lines[-12:]}
+
+
+class App:
+    """What the server knows: the video, the output folder, the one run at a time."""
+
+    def __init__(self, video: str | Path, out_dir: str | Path, *, fps: float | None = None,
+                 calibration: str | Path | None = None) -> None:
+        from flow.camfiles import companion_files
+
+        self.video = Path(video)
+        self.source = FrameSource(self.video, fps=fps, require_fps=False, allow_truncated=True)
+        self.fps, self.calibration = fps, (str(Path(calibration).resolve()) if calibration else None)
+        self.undistort_points = None
+        if calibration:
+            from flow.calibration import load_calibration, point_undistorter
+
+            loaded = load_calibration(calibration)
+            self.undistort_points = point_undistorter(loaded)
+        self.folder = OutputFolder(out_dir, [self.video, *companion_files(self.video),
+                                             *([calibration] if calibration else [])])
+        self.frames = Frames(self.source)
+        self.lock = threading.Lock()
+        self.job: Job | None = None
+        self.statics = static_files()
+
+    # -- the project ------------------------------------------------------------------------
+
+    def info(self) -> dict[str, Any]:
+        from flow import registry
+
+        kinds, described = registry.kinds(), registry.describe()
+        name = re.sub(r"[^A-Za-z0-9._-]", "_", self.video.stem)[:60].strip("._-")
+        name = name if projects.NAME_PATTERN.fullmatch(name) else "run"
+        saved = None
+        project_file = self.folder.root / projects.files_of(name)["project"]
+        if project_file.is_file():
+            try:
+                saved = projects.load_project(project_file)
+            except InputError as err:
+                print(f"refflow gui: note: {err} (not loaded)", file=sys.stderr)
+        try:
+            from flow.cli import _default_method  # what `track` runs without --method
+
+            default = _default_method()[0]
+        except (ImportError, AttributeError):  # pragma: no cover - the CLI is part of the package
+            default = "deepflow" if "deepflow" in kinds else next(iter(kinds))
+        source = self.source
+        return {"video": str(self.video), "video_name": self.video.name, "width": source.width,
+                "height": source.height, "frames": source.header_frames,
+                "fps": source.fps if math.isfinite(source.fps) else None,
+                "calibration": self.calibration, "out_dir": str(self.folder.root), "name": name,
+                "methods": [{"name": n, "kind": kinds[n], "summary": described[n]} for n in described],
+                "default_method": default, "project": saved,
+                "notes": list(source.notes)}
+
+    def save(self, body: dict[str, Any]) -> dict[str, Any]:
+        """Write the project JSON and its mask PNGs; return the files and command lines."""
+        from refflow.io import atomic_path
+
+        name = projects.check_name(body.get("name"))
+        files = projects.files_of(name)
+        project = projects.from_page(body.get("project"), video=self.video, name=name, fps=self.fps,
+                                     calibration=self.calibration)
+        targets = {role: self.folder.path(file) for role, file in files.items()}
+        if project["mask"]:
+            write_mask(targets["mask"], project["regions"], self.source.size)
+        if project["background"]:
+            write_mask(targets["background"], project["background"]["regions"], self.source.size)
+        with atomic_path(targets["project"]) as tmp:
+            tmp.write_text(projects.dumps(project))
+        argv = projects.track_argv(targets["project"])
+        command = projects.command_line(argv)
+        print(f"refflow gui: saved {targets['project']}\n  {command}\n  "
+              f"refflow track --project {targets['project']}", flush=True)
+        return {"name": name, "files": files, "project_path": str(targets["project"]), "argv": argv,
+                "command": command, "project_command": projects.command_line(
+                    ["track", "--project", str(targets["project"])])}
+
+    def scale(self, body: dict[str, Any]) -> dict[str, Any]:
+        """mm per pixel of ``known_length_mm`` between ``between_px`` (undistorted with the
+        calibration), by the tool's own function and messages."""
+        from flow.calibration import scale_from_known_length
+
+        scale = projects._scale({"known_length_mm": body.get("known_length_mm"),
+                                 "between_px": body.get("between_px")})
+        if scale is None:
+            raise InputError("--known-length needs --between X1,Y1,X2,Y2 (and vice versa)")
+        between = ",".join(projects._text(v) for v in scale["between_px"])
+        mm_per_px = scale_from_known_length(scale["known_length_mm"], between, self.undistort_points,
+                                            frame_size=self.source.size)
+        return {"mm_per_px": mm_per_px, "undistorted": self.undistort_points is not None}
+
+    def pois(self, body: dict[str, Any]) -> dict[str, Any]:
+        """Save, then ``refflow pois``: the figure of the POIs next to the corners KLT would use."""
+        saved = self.save(body)
+        figure = self.folder.path(saved["files"]["pois"])
+        argv = projects.pois_argv(saved["project_path"], figure)
+        done = subprocess.run([sys.executable, "-m", "flow.cli", *argv], capture_output=True, text=True,
+                              cwd=self.folder.root, timeout=600, stdin=subprocess.DEVNULL)
+        if done.returncode != 0:
+            lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
+            errors = [ln for ln in lines if ln.startswith("refflow pois: error:")]
+            raise InputError(errors[-1] if errors else (lines[-1] if lines else f"refflow pois failed ({done.returncode})"))
+        return {**saved, "image": saved["files"]["pois"], "message": done.stdout.strip().splitlines()[-1]}
+
+    # -- the run ------------------------------------------------------------------------------
+
+    def run(self, body: dict[str, Any]) -> dict[str, Any]:
+        with self.lock:
+            if self.job is not None and self.job.state == "running":
+                raise Busy("a run is in progress: wait for it or cancel it first")
+            saved = self.save(body)
+            self.job = Job(saved["argv"], name=saved["name"], cwd=self.folder.root)
+            return {**saved, **self.job.status()}
+
+    def status(self) -> dict[str, Any]:
+        job = self.job
+        return job.status() if job is not None else {"state": "idle", "message": "no run yet"}
+
+    def cancel(self) -> dict[str, Any]:
+        job = self.job
+        if job is None or job.state != "running":
+            raise Busy("no run in progress")
+        job.cancel()
+        return job.status()
+
+    def result(self, name: Any) -> dict[str, Any]:
+        """The run's displacement (mm where it has a scale, else px) and amplitude spectra, by the
+        tool's own reading and spectrum (:mod:`flow.figures`)."""
+        from flow.figures import dominant_frequency, read_measurement
+
+        files = projects.files_of(projects.check_name(name))
+        csv_path = self.folder.existing(files["csv"], (".csv",))
+        data = read_measurement(csv_path)
+        units = "mm" if data["has_mm"] else "px"
+        time_s = data["time_s"]
+        dx, dy = data[f"dx_{units}"], data[f"dy_{units}"]
+        spectra = {}
+        for axis, values in (("dx", dx), ("dy", dy)):
+            peak, freqs, amplitude = dominant_frequency(time_s, values)
+            freqs, amplitude = envelope(freqs, amplitude)
+            spectra[axis] = {"peak_hz": peak, "freqs": finite_list(freqs), "amplitude": finite_list(amplitude)}
+        with np.errstate(all="ignore"):
+            main = "dx" if np.nanstd(dx) >= np.nanstd(dy) else "dy"
+        steps = np.diff(time_s[np.isfinite(time_s)])
+        nyquist = 0.5 / float(np.median(steps)) if steps.size and np.median(steps) > 0 else None
+        peaks = [s["peak_hz"] for s in spectra.values() if s["peak_hz"] is not None]
+        view_hz = min(nyquist, max(2.0, 4 * max(peaks))) if peaks and nyquist else nyquist
+        present = {role: file for role, file in files.items() if (self.folder.root / file).is_file()}
+        return {"name": files["csv"][:-4], "units": units, "label": data["label"], "time_s": finite_list(time_s),
+                "dx": finite_list(dx), "dy": finite_list(dy), "spectra": spectra, "main": main,
+                "view_hz": view_hz, "files": present,
+                "valid": int(np.isfinite(dx).sum()), "frames": len(time_s)}
+
+    def close(self) -> None:
+        job = self.job
+        if job is not None and job.proc.poll() is None:
+            job.cancel()
+            try:
+                job.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                job.proc.kill()
+        self.frames.close()
+
+
+class Busy(InputError):
+    """A request that conflicts with the run in progress (HTTP 409)."""
+
+
+def envelope(x: np.ndarray, y: np.ndarray, points: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``points`` samples of a long spectrum: each bin's largest value (peaks stay)."""
+    if len(x) <= points:
+        return x, y
+    step = int(math.ceil(len(x) / points))
+    count = len(x) // step * step
+    blocks = y[:count].reshape(-1, step)
+    picks = np.nanargmax(np.where(np.isfinite(blocks), blocks, -np.inf), axis=1) + np.arange(0, count, step)
+    return x[picks], y[picks]
+
+
+def write_mask(path: Path, regions: list[dict[str, Any]], frame_size: tuple[int, int]) -> None:
+    """A full-frame mask PNG (white inside any region), drawn by the tool's ``--polygon``."""
+    import cv2
+
+    from flow import poi
+    from flow.io import Roi
+    from refflow.io import atomic_path
+
+    width, height = frame_size
+    frame = Roi(0, 0, width, height)
+    mask = np.zeros((height, width), bool)
+    for region in regions:
+        text = ",".join(projects._text(v) for point in region["polygon"] for v in point)
+        mask |= poi.polygon_mask(text, roi=frame)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), mask.astype(np.uint8) * 255):
+            raise OSError(f"cannot write {path}")
+
+
+class Handler(BaseHTTPRequestHandler):
+    server_version = "refflow-gui"
+    app: App  # set on the subclass made by make_server
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the base class's name
+        if os.environ.get("REFFLOW_GUI_LOG"):
+            super().log_message(format, *args)
+
+    # -- replies ------------------------------------------------------------------------------
+
+    def _send(self, status: int, body: bytes, content_type: str, headers: dict[str, str] | None = None) -> None:
+        self.send_response(status)
+        fields = {"Content-Type": content_type, "Content-Length": str(len(body)), "Cache-Control": "no-store",
+                  "X-Content-Type-Options": "nosniff",
+                  "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:",
+                  **(headers or {})}
+        for key, value in fields.items():
+            self.send_header(key, value)
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
+    def _json(self, data: Any, status: int = 200) -> None:
+        self._send(status, json.dumps(data, allow_nan=False).encode(), "application/json")
+
+    def _error(self, status: int, message: str) -> None:
+        self._json({"error": " ".join(str(message).split())}, status)
+
+    def _allowed(self) -> bool:
+        """Only this server's own address (a page elsewhere cannot reach it by DNS tricks or
+        send it requests from another origin)."""
+        port = self.server.server_address[1]
+        hosts = {f"127.0.0.1:{port}", f"localhost:{port}"}
+        if self.headers.get("Host") not in hosts:
+            self._error(403, f"refflow gui answers requests to 127.0.0.1:{port} only")
+            return False
+        origin = self.headers.get("Origin")
+        if origin is not None and origin not in {f"http://{h}" for h in hosts}:
+            self._error(403, "requests from another site's page are refused")
+            return False
+        return True
+
+    # -- routes -------------------------------------------------------------------------------
+
+    def do_GET(self) -> None:  # noqa: N802 - http.server's name
+        if not self._allowed():
+            return
+        url = urlsplit(self.path)
+        query = {k: v[-1] for k, v in parse_qs(url.query).items()}
+        app = self.app
+        try:
+            if url.path in ("/", "/index.html"):
+                body, kind = app.statics["index.html"]
+                self._send(200, body, kind)
+            elif url.path.startswith("/static/"):
+                asset = app.statics.get(url.path[len("/static/"):])
+                if asset is None:
+                    self._error(404, f"{url.path} is not one of the page's files")
+                else:
+                    self._send(200, asset[0], asset[1])
+            elif url.path == "/api/info":
+                self._json(app.info())
+            elif url.path == "/api/frame":
+                self._frame(query.get("i", "0"))
+            elif url.path == "/api/run":
+                self._json(app.status())
+            elif url.path == "/api/result":
+                self._json(app.result(query.get("name")))
+            elif url.path == "/api/file":
+                self._file(query.get("name"), inline=query.get("inline") == "1")
+            else:
+                self._error(404, f"{url.path} is not part of refflow gui")
+        except PathRefused as err:
+            self._error(403, str(err))
+        except FileNotFoundError as err:
+            self._error(404, str(err.args[0] if err.args else err))
+        except InputError as err:
+            self._error(400, str(err))
+
+    do_HEAD = do_GET
+
+    def do_POST(self) -> None:  # noqa: N802 - http.server's name
+        if not self._allowed():
+            return
+        url = urlsplit(self.path)
+        routes = {"/api/project": self.app.save, "/api/pois": self.app.pois, "/api/run": self.app.run,
+                  "/api/scale": self.app.scale, "/api/cancel": lambda body: self.app.cancel()}
+        if url.path not in routes:
+            self._error(404, f"{url.path} is not part of refflow gui")
+            return
+        if self.headers.get_content_type() != "application/json":
+            self._error(415, "send JSON (Content-Type: application/json)")
+            return
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            length = -1
+        if not 0 <= length <= MAX_BODY:
+            self._error(413, f"the request body must be JSON of at most {MAX_BODY} bytes")
+            return
+        try:
+            body = json.loads(self.rfile.read(length) or b"{}")
+        except ValueError:
+            self._error(400, "the request body is not JSON")
+            return
+        if not isinstance(body, dict):
+            self._error(400, "the request body must be a JSON object")
+            return
+        try:
+            self._json(routes[url.path](body))
+        except PathRefused as err:
+            self._error(403, str(err))
+        except Busy as err:
+            self._error(409, str(err))
+        except InputError as err:
+            self._error(400, str(err))
+        except OSError as err:
+            self._error(500, f"{err.strerror or err}: {err.filename or ''} (check the output folder)")
+        except subprocess.TimeoutExpired:
+            self._error(504, "refflow pois took longer than 10 minutes")
+
+    def _frame(self, text: str) -> None:
+        try:
+            index = int(text)
+        except ValueError:
+            self._error(400, f"frame {text!r} is not a frame index")
+            return
+        if index < 0:
+            self._error(400, f"frame {index} is negative")
+            return
+        blob = self.app.frames.jpeg(index)
+        if blob is None:
+            self._error(404, f"frame {index} is beyond the video's {self.app.frames.source.frames_read} frames")
+            return
+        self._send(200, blob, "image/jpeg", {"Cache-Control": "private, max-age=3600"})
+
+    def _file(self, name: Any, *, inline: bool) -> None:
+        path = self.app.folder.existing(name, tuple(FILE_TYPES))
+        disposition = "inline" if inline else "attachment"
+        self._send(200, path.read_bytes(), FILE_TYPES[path.suffix.lower()],
+                   {"Content-Disposition": f'{disposition}; filename="{path.name}"'})
+
+
+def make_server(video: str | Path, out_dir: str | Path, *, port: int = 0, fps: float | None = None,
+                calibration: str | Path | None = None) -> ThreadingHTTPServer:
+    """A server on 127.0.0.1:``port`` (0: any free port) for ``video``, writing into ``out_dir``;
+    its :class:`App` is ``server.app``. Call ``serve_forever()``, then ``shutdown()`` and
+    ``server.app.close()``."""
+    app = App(video, out_dir, fps=fps, calibration=calibration)
+    handler = type("BoundHandler", (Handler,), {"app": app})
+    try:
+        server = ThreadingHTTPServer(("127.0.0.1", port), handler)
+    except OSError as err:
+        app.close()
+        raise InputError(f"cannot listen on 127.0.0.1:{port} ({err.strerror or err}): another program (another "
+                         "refflow gui?) uses it; pass --port with another number, or 0 for any free port") from None
+    server.daemon_threads = True
+    server.app = app  # type: ignore[attr-defined]
+    return server
