@@ -8,7 +8,6 @@ OpenCV ``calibrateCamera`` / ``initUndistortRectifyMap``.
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from collections.abc import Callable
@@ -18,7 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.io import FrameSource, InputError, Roi, as_uint8
+from flow.io import FrameSource, InputError, Roi, as_uint8, json_number, load_json, shown
 
 
 def board_points(cols: int, rows: int, square_mm: float) -> np.ndarray:
@@ -136,17 +135,56 @@ def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
     }
 
 
+# Distortion models OpenCV knows: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]].
+DIST_COEFF_COUNTS = (4, 5, 8, 12, 14)
+
+
+def _json_numbers(value: Any) -> list[float] | None:
+    """The numbers of a JSON list, or of a list of equal rows, flattened; None if ``value`` is
+    not one or holds anything but numbers (booleans included)."""
+    if not isinstance(value, list):
+        return None
+    if value and all(isinstance(row, list) for row in value):
+        if len({len(row) for row in value}) != 1:
+            return None
+        value = [v for row in value for v in row]
+    numbers = [json_number(v) for v in value]
+    return None if any(v is None for v in numbers) else numbers
+
+
 def load_calibration(path: str | Path) -> dict[str, Any]:
+    """The calibration JSON of `refflow calibrate` at ``path``, checked and cleaned: a finite 3x3
+    ``camera_matrix`` with positive focal lengths, finite ``dist_coeffs`` (4, 5, 8, 12 or 14),
+    ``image_size`` [width, height] of positive integers where given, ``rms_px`` a finite
+    number or None. Anything else raises :class:`InputError` naming the entry."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"calibration file {str(path)!r} does not exist: run `refflow calibrate` first")
-    try:
-        data = json.loads(path.read_text())
-        np.asarray(data["camera_matrix"], float).reshape(3, 3)
-        np.asarray(data["dist_coeffs"], float)
-    except (ValueError, KeyError, TypeError) as err:
-        raise InputError(f"calibration file {str(path)!r} is not a refflow calibration JSON ({err})") from None
-    return data
+    name = f"calibration file {str(path)!r}"
+    data = load_json(path, name)
+    again = "run `refflow calibrate` again or fix the file"
+    if not isinstance(data, dict):
+        raise InputError(f"{name} is not a refflow calibration (a JSON object with 'camera_matrix' and "
+                         f"'dist_coeffs'): {again}")
+    camera = _json_numbers(data.get("camera_matrix"))
+    if camera is None or len(camera) != 9 or not all(math.isfinite(v) for v in camera) \
+            or not (camera[0] > 0 and camera[4] > 0):
+        raise InputError(f"{name}: 'camera_matrix' needs 3x3 finite numbers with positive focal lengths "
+                         f"(fx, fy), got {shown(data.get('camera_matrix'))}: {again}")
+    dist = _json_numbers(data.get("dist_coeffs"))
+    if dist is None or len(dist) not in DIST_COEFF_COUNTS or not all(math.isfinite(v) for v in dist):
+        raise InputError(f"{name}: 'dist_coeffs' needs {', '.join(map(str, DIST_COEFF_COUNTS))} finite "
+                         f"numbers, got {shown(data.get('dist_coeffs'))}: {again}")
+    cleaned = {**data, "camera_matrix": np.reshape(camera, (3, 3)).tolist(), "dist_coeffs": dist}
+    if "image_size" in data:
+        size = _json_numbers(data["image_size"])
+        if size is None or len(size) != 2 or not all(0 < v < math.inf and v == int(v) for v in size):
+            raise InputError(f"{name}: 'image_size' needs [width, height] in pixels (two positive integers), "
+                             f"got {shown(data['image_size'])}: {again}")
+        cleaned["image_size"] = [int(v) for v in size]
+    rms = json_number(data.get("rms_px"))
+    cleaned["rms_px"] = rms if rms is not None and math.isfinite(rms) else None  # only reported
+    return cleaned
 
 
 class Undistorter:

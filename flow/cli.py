@@ -26,7 +26,7 @@ import numpy as np
 
 from flow import registry
 from flow.camfiles import companion_files
-from flow.io import FrameSource, InputError, Roi
+from flow.io import FrameSource, InputError, Roi, json_number, load_json, quiet_decoder_logs, shown
 from refflow.io import atomic_paths, json_text, versions, write_json
 
 EXIT_USAGE = 2
@@ -68,14 +68,12 @@ def _video_origin(args: argparse.Namespace) -> tuple[int, int]:
     if not args.calibration:
         raise InputError("--video-origin places the video on the calibrated sensor: pass --calibration too")
     if text.lower().endswith(".json"):
-        import json
-
-        try:
-            origin = json.loads(Path(text).read_text()).get("video_origin_px")
-        except (OSError, ValueError, AttributeError) as err:
-            raise InputError(f"--video-origin {text!r} is not a readable JSON file ({err})") from None
-        if not (isinstance(origin, list) and len(origin) == 2):
-            raise InputError(f"--video-origin {text!r} needs 'video_origin_px': [X, Y], got {origin!r}")
+        data = load_json(text, f"--video-origin {text!r}")
+        origin = data.get("video_origin_px") if isinstance(data, dict) else None
+        if not (isinstance(origin, list) and len(origin) == 2
+                and all(isinstance(v, int) and not isinstance(v, bool) for v in origin)):
+            raise InputError(f"--video-origin {text!r} needs 'video_origin_px': [X, Y] (two integers), "
+                             f"got {shown(origin)}")
         text = f"{origin[0]},{origin[1]}"
     try:
         x, y = (int(v) for v in text.split(","))
@@ -225,32 +223,28 @@ def _scale_from_file(path: str, undistort_points: Any, frame_size: tuple[int, in
     """``(mm_per_px, how)`` from a JSON file: its ``mm_per_px``, or a known length
     ``known_length_mm`` between two raw video points ``between_px`` [X1, Y1, X2, Y2]
     (measured in the undistorted image with a calibration, like --known-length)."""
-    import json
-
     from flow.calibration import scale_from_known_length
 
-    try:
-        data = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise InputError(f"scale file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise InputError(f"scale file {path} is not readable JSON: {err}") from None
+    data = load_json(path, f"scale file {path}")
     data = data if isinstance(data, dict) else {}
     if "known_length_mm" in data or "between_px" in data:
         length, between = data.get("known_length_mm"), data.get("between_px")
-        if not (isinstance(length, (int, float)) and isinstance(between, list) and len(between) == 4
-                and all(isinstance(v, (int, float)) for v in between)):
-            raise InputError(f"scale file {path}: 'known_length_mm' needs a number and 'between_px' "
-                             f"four numbers X1,Y1,X2,Y2, got {length!r} and {between!r}")
-        text = ",".join(f"{float(v):.6f}" for v in between)
-        mm_per_px = scale_from_known_length(float(length), text, undistort_points, frame_size=frame_size)
+        number = json_number(length)
+        points = [json_number(v) for v in between] if isinstance(between, list) else []
+        if not (number is not None and 0 < number < math.inf and len(points) == 4
+                and all(v is not None and math.isfinite(v) for v in points)):
+            raise InputError(f"scale file {path}: 'known_length_mm' needs a positive number and 'between_px' "
+                             f"four numbers X1,Y1,X2,Y2, got {shown(length)} and {shown(between)}")
+        text = ",".join(f"{v:.6f}" for v in points)
+        mm_per_px = scale_from_known_length(number, text, undistort_points, frame_size=frame_size)
         where = " (undistorted)" if undistort_points is not None else ""
-        return mm_per_px, f"known length {length} mm between {text} from {path}{where}"
+        return mm_per_px, f"known length {number} mm between {text} from {path}{where}"
     value = data.get("mm_per_px")
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 < value < math.inf:
+    number = json_number(value)
+    if number is None or not 0 < number < math.inf:
         raise InputError(f"scale file {path} needs a positive number under 'mm_per_px' (or "
-                         f"'known_length_mm' and 'between_px'), got {value!r}")
-    return float(value), f"mm_per_px from {path}"
+                         f"'known_length_mm' and 'between_px'), got {shown(value)}")
+    return number, f"mm_per_px from {path}"
 
 
 def _check_scale_options(args: argparse.Namespace) -> None:
@@ -771,6 +765,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import signal
     import threading
 
+    quiet_decoder_logs()
     parser = build_parser()
     args = parser.parse_args(argv)
     previous = None

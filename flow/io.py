@@ -11,14 +11,22 @@ before its container's duration is truncated (see :class:`FrameSource`).
 
 from __future__ import annotations
 
+import contextlib
+import json
+import logging
 import math
 import os
 import re
+import reprlib
 import subprocess
+import sys
+import tempfile
+import threading
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -121,16 +129,117 @@ def as_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
-def quiet_decoder_logs() -> None:
-    """Keep OpenCV's ffmpeg backend from printing its own error lines on stderr.
+def load_json(path: str | Path, what: str) -> Any:
+    """The JSON document in the file ``path``, which the messages call ``what`` (e.g. "scale
+    file X"): a file that is missing, unreadable or not JSON raises :class:`InputError`.
 
-    refflow diagnoses unreadable files itself and reports one line; ffmpeg's
-    multi-line noise would bury it. Must run before the first ``VideoCapture``
-    of the process (OpenCV reads the variable once). A value the user exported
-    (to debug a file) is kept.
+    JSON as Python reads it (NaN and Infinity included); what its parser refuses besides
+    syntax errors (a number of thousands of digits, nesting deeper than the recursion limit)
+    is not JSON here either.
     """
-    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
-    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{what} does not exist: check the path") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{what} is not readable JSON (not UTF-8 text): pass the JSON file") from None
+    except OSError as err:
+        raise InputError(f"{what} cannot be read ({err.strerror or err}): check the path and "
+                         "permissions") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        detail = str(err)
+    except RecursionError:
+        detail = "nested too deeply"
+    except ValueError:  # int() refuses a literal of more than sys.get_int_max_str_digits() digits
+        detail = "a number with too many digits"
+    raise InputError(f"{what} is not readable JSON ({detail}): fix or write the file again")
+
+
+def json_number(value: Any) -> float | None:
+    """A JSON number as a float (an integer too large for one: +-inf, which every finiteness
+    check then refuses); None for anything else, booleans included (``true`` is no number)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf if value > 0 else -math.inf
+
+
+def shown(value: Any) -> str:
+    """``repr`` of a value read from a user's file, shortened for a one-line message."""
+    return reprlib.repr(value)
+
+
+# OpenCV's ffmpeg backend reads its log level once, at the first VideoCapture or VideoWriter of
+# the process, whoever makes it: hence here, on import, and not in quiet_decoder_logs.
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+
+
+def quiet_decoder_logs() -> None:
+    """Keep OpenCV and its ffmpeg backend from printing their own error lines on stderr.
+
+    refflow diagnoses unreadable files itself and reports one line; the decoders' noise
+    (``[ERROR:0@...] loadsave.cpp ... can't read header``, ffmpeg's ``moov atom not found``)
+    would bury it. Called at the start of ``refflow``; ffmpeg's level is set when this module
+    is imported. A level the user exported (``OPENCV_LOG_LEVEL``, ``OPENCV_FFMPEG_LOGLEVEL``,
+    to debug a file) is kept.
+    """
+    if "OPENCV_LOG_LEVEL" not in os.environ:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
+_STDERR_HOLD = threading.Lock()
+
+
+@contextlib.contextmanager
+def _held_back_stderr() -> Iterator[list[str]]:
+    """Hold back what C libraries write on file descriptor 2 (libpng, libjpeg print there
+    directly) while the block runs; the list yielded receives it as lines when the block ends.
+
+    fd 2 is the process's: use it only for reads before any other thread runs (a progress
+    bar's output would be held back too), never during tracking. Two holds at once (threads)
+    take turns, so that each gives fd 2 back as it found it.
+    """
+    sys.stderr.flush()
+    held: list[str] = []
+    with _STDERR_HOLD, tempfile.TemporaryFile() as sink:
+        saved = os.dup(2)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield held
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            held.extend(sink.read().decode("utf-8", "replace").splitlines())
+
+
+def _first_complaint(lines: list[str]) -> str:
+    return next((line.strip() for line in lines if line.strip()), "")
+
+
+def read_image(path: str | Path, flags: int) -> tuple[np.ndarray | None, str]:
+    """``cv2.imread(path, flags)`` and the decoder's first complaint (``""`` when none).
+
+    What the decoders print is held back, never shown: the image is None when it cannot be
+    decoded, and its complaint (``libpng error: IHDR: CRC error``, ``Premature end of JPEG
+    file``) then belongs in the caller's one-line message; about an image that decodes (a
+    libpng warning on its colour profile, libjpeg's ``Corrupt JPEG data``), it belongs in the
+    run's notes (printed, it would be a second line next to any later refusal). For the reads
+    before the first frame only (see :func:`_held_back_stderr`).
+    """
+    with _held_back_stderr() as printed:
+        image = cv2.imread(str(path), flags)
+    return image, _first_complaint(printed)
+
+
+def open_video(path: Path) -> cv2.VideoCapture:
+    """``path`` opened by OpenCV's ffmpeg backend only: not as an image sequence, nor by its own
+    AVI parser (both print on stderr, and ffmpeg reads every container they do)."""
+    return cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
 
 
 def _ffmpeg_report(path: Path) -> tuple[str | None, int | None]:
@@ -165,6 +274,27 @@ def _starts_like_mp4(path: Path) -> bool:
         return handle.read(12)[4:8] in (b"ftyp", b"wide", b"mdat", b"free")
 
 
+# Where an MP4/MOV keeps its index: after the file type box (``+faststart``, phones), or last.
+MOOV_SEARCH_BYTES = 16 << 20
+
+
+def _holds_moov(path: Path) -> bool:
+    """Whether the first or last :data:`MOOV_SEARCH_BYTES` of ``path`` hold a complete ``moov``
+    box (its declared size within the file), whether or not the boxes before it lead there."""
+    length = path.stat().st_size
+    with path.open("rb") as handle:
+        for start in sorted({0, max(length - MOOV_SEARCH_BYTES, 0)}):
+            handle.seek(start)
+            data = handle.read(MOOV_SEARCH_BYTES)
+            at = data.find(b"moov", 4)
+            while at != -1:
+                size = int.from_bytes(data[at - 4:at], "big")
+                if size >= 8 and start + at - 4 + size <= length:
+                    return True
+                at = data.find(b"moov", at + 1)
+    return False
+
+
 def mp4_missing_bytes(path: Path) -> int:
     """Bytes an MP4/MOV file's top-level boxes declare beyond its end (0: complete, or not
     an MP4). A recording cut short after its index was written (``+faststart``, as phones
@@ -191,6 +321,140 @@ def mp4_missing_bytes(path: Path) -> int:
     return 0
 
 
+def _because(complaint: str) -> str:
+    """A decoder's complaint as a parenthesis of a one-line message ("" when none)."""
+    return f" ({complaint})" if complaint else ""
+
+
+# A JPEG file's last marker (End Of Image); some cameras pad the file with zeros after it.
+JPEG_END = b"\xff\xd9"
+# A PNG file's last chunk, IEND: empty, so its length and checksum are always these.
+PNG_END = b"\0\0\0\0IEND\xaeB`\x82"
+# TIFF tags locating the image data: StripOffsets/StripByteCounts, TileOffsets/TileByteCounts.
+TIFF_DATA_TAGS = ((273, 279), (324, 325))
+
+
+def _image_structure(path: Path) -> tuple[tuple[int, int], str, list[tuple[object, object]]]:
+    """``((width, height), format, [(offsets, byte counts)])`` of an image file as its header
+    tells, without decoding its pixels (PNG chunks and checksums verified). Pillow's parsers
+    raise what they will on a damaged file: callers catch it (see :func:`check_image_file`)."""
+    from PIL import Image
+
+    with Image.open(path) as image:
+        size, kind = image.size, image.format or ""
+        data = [(image.tag_v2.get(where), image.tag_v2.get(count))
+                for where, count in TIFF_DATA_TAGS] if kind == "TIFF" else []
+        image.verify()  # the file's structure (PNG: every chunk's checksum), not its pixels
+    return size, kind, data
+
+
+def _jpeg_header(data: bytes) -> bytes | None:
+    """The bytes of a JPEG up to the end of its first start-of-scan (SOS) segment header, marker
+    by marker (an EXIF thumbnail's own markers skipped with its segment); None where the markers
+    do not chain (libjpeg may still skip the stray bytes: judged on the whole file then)."""
+    at = 2  # after SOI
+    while at + 4 <= len(data) and data[at] == 0xFF:
+        marker = data[at + 1]
+        if marker == 0xFF:  # fill byte
+            at += 1
+            continue
+        end = at + 2 + int.from_bytes(data[at + 2:at + 4], "big")
+        if marker == 0xDA:
+            return data[:end] if end <= len(data) else None
+        at = end
+    return None
+
+
+def _jpeg_problem(path: Path) -> str:
+    """Why libjpeg cannot decode the JPEG ``path`` from its header ("" if it can).
+
+    Whether libjpeg decodes a JPEG at all is decided, as a rule, by its header (markers, tables,
+    frame and scan headers): damage in the compressed data after it costs pixels (libjpeg warns
+    and decodes), unless it forms a marker. So libjpeg is given the header alone, closed by an
+    end marker, at 1/8 scale: cheap (no pixel of the file is decoded), and what it refuses, a
+    full read refuses too.
+    """
+    with path.open("rb") as handle:
+        head = handle.read(1 << 16)  # the header, EXIF and its thumbnail included, as a rule
+    header = _jpeg_header(head)
+    if header is None and len(head) == 1 << 16:  # a longer header (large EXIF, ICC, XMP): read on
+        header = _jpeg_header(path.read_bytes())
+    data = header + JPEG_END if header is not None else path.read_bytes()
+    with _held_back_stderr() as printed:
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
+    return "" if image is not None else f"damaged: {_first_complaint(printed) or 'libjpeg cannot read it'}"
+
+
+def _structure_problem(path: Path, kind: str, data: list[tuple[object, object]]) -> str:
+    """How the file ``path`` of Pillow ``kind`` is damaged or cut short, from its structure
+    ("" if it is sound)."""
+    length = path.stat().st_size
+    with path.open("rb") as handle:
+        handle.seek(max(length - 65536, 0))
+        tail = handle.read()
+    if kind in ("JPEG", "MPO"):
+        if not tail.rstrip(b"\0").endswith(JPEG_END):
+            return "truncated: the JPEG data has no end marker"
+        return _jpeg_problem(path)
+    if kind == "PNG" and PNG_END not in tail:  # Pillow's check stops short of IEND's checksum
+        return "damaged or truncated: the PNG's end chunk (IEND) is missing or broken"
+    for offsets, counts in data:
+        if offsets is None:
+            continue
+        offsets = offsets if isinstance(offsets, tuple) else (offsets,)
+        counts = (0,) * len(offsets) if counts is None else counts
+        counts = counts if isinstance(counts, tuple) else (counts,)
+        if not all(isinstance(v, int) for v in offsets + counts) or len(offsets) != len(counts):
+            return "damaged: the TIFF's strip or tile table is broken"
+        if any(start < 0 or start + size > length for start, size in zip(offsets, counts, strict=True)):
+            return "truncated: its TIFF image data lies beyond the end of the file"
+    return ""
+
+
+@contextlib.contextmanager
+def _pillow_quiet() -> Iterator[None]:
+    """Pillow says nothing while the block runs: neither its warnings (``Corrupt EXIF data``)
+    nor its log (``More samples per pixel than can be decoded``, which Python's logging prints
+    on stderr when nothing is configured). Before the first frame only: both are global."""
+    logger = logging.getLogger("PIL")
+    level = logger.level
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        logger.setLevel(logging.CRITICAL + 1)
+        try:
+            yield
+        finally:
+            logger.setLevel(level)
+
+
+def check_image_file(path: Path) -> tuple[int, int]:
+    """``(width, height)`` of the image file ``path`` from its header, after checking its
+    structure without decoding its pixels: an unreadable, damaged or truncated file (a PNG
+    checksum error, a JPEG without its end marker, a TIFF whose strips lie beyond its end)
+    raises :class:`InputError`, in one line. A file Pillow cannot identify (a format only
+    OpenCV knows, or a damaged header) is decoded by OpenCV instead.
+    """
+    from PIL import UnidentifiedImageError
+
+    with _pillow_quiet():
+        try:
+            size, kind, data = _image_structure(path)
+        except UnidentifiedImageError:
+            image, complaint = read_image(path, cv2.IMREAD_UNCHANGED)
+            if image is not None:
+                return image.shape[1], image.shape[0]
+            problem = complaint or "not an image Pillow or OpenCV can read"
+        # Pillow's parsers raise many kinds on a damaged file (SyntaxError, EOFError,
+        # struct.error, DecompressionBombError, ...): each means the file cannot be measured.
+        except Exception as err:
+            problem = _first_complaint(str(err).splitlines()) or type(err).__name__
+        else:
+            problem = _structure_problem(path, kind, data)
+    if problem:
+        raise InputError(f"image {str(path)!r} cannot be read ({problem}): remove or replace it")
+    return size
+
+
 def diagnose_unreadable(path: Path) -> str:
     """One-line reason why OpenCV cannot open the video ``path``, and what to do."""
     name = str(path)
@@ -207,6 +471,10 @@ def diagnose_unreadable(path: Path) -> str:
         return (f"video {name!r} holds {packets} frames that this OpenCV build cannot decode: "
                 "convert it, e.g. `ffmpeg -i IN -c:v libx264 -crf 12 OUT.mp4`")
     if opened is not None and "moov atom not found" in opened and _starts_like_mp4(path):
+        if _holds_moov(path):
+            return (f"video {name!r} is damaged: it holds its MP4/MOV index (moov atom), but the boxes "
+                    "leading to it are broken (a disk or copy error); copy it again from the camera, or "
+                    "try a repair tool (e.g. untrunc) with a good file from the same camera")
         return (f"video {name!r} is truncated: the MP4/MOV index (moov atom) is missing, as when a "
                 "recording is interrupted or a copy is incomplete; copy it again, or try to "
                 "recover it with a repair tool (e.g. untrunc) and a good file from the same camera")
@@ -273,15 +541,20 @@ class FrameSource:
         if self._camera is not None:
             self._open_camera(fps)
         elif self.is_folder:
-            self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            self._files = sorted(p for p in self.path.iterdir()
+                                 if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
             if not self._files:
                 raise InputError(f"folder {str(self.path)!r} holds no images ({', '.join(IMAGE_SUFFIXES)})")
             if fps is None and require_fps:
                 raise InputError(f"folder {str(self.path)!r} is a sequence of images without timestamps: "
                                  "pass --fps (the camera frame rate)")
-            first = cv2.imread(str(self._files[0]), cv2.IMREAD_UNCHANGED)
+            check_image_file(self._files[0])
+            first, complaint = read_image(self._files[0], cv2.IMREAD_UNCHANGED)
             if first is None:
-                raise InputError(f"image {str(self._files[0])!r} cannot be read: is it a valid image?")
+                raise InputError(f"image {str(self._files[0])!r} cannot be read{_because(complaint)}: "
+                                 "remove or replace it")
+            if complaint:
+                self.notes.append(f"image {self._files[0].name} (the first) decoded with a warning: {complaint}")
             self.height, self.width = first.shape[:2]
             self._scan_folder()
             self.fps = float(fps) if fps else float("nan")
@@ -290,7 +563,7 @@ class FrameSource:
                 self._keep_depth(first, significant_bits(first), "16-bit images")
         else:
             quiet_decoder_logs()
-            cap = cv2.VideoCapture(str(self.path))
+            cap = open_video(self.path)
             if not cap.isOpened():
                 raise InputError(diagnose_unreadable(self.path))
             self.width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
@@ -416,19 +689,10 @@ class FrameSource:
     def _scan_folder(self) -> None:
         """Check every image's header and structure (not its pixels) before the first frame is
         measured, so that a truncated or mis-sized image stops the run at once, not hours into it."""
-        from PIL import Image, UnidentifiedImageError
-
         for file in self._files[1:]:
-            try:
-                with Image.open(file) as image:
-                    width, height = image.size
-                    image.verify()  # the file's structure and checksums, without decoding it
-            except UnidentifiedImageError:
-                continue  # a format only OpenCV knows: checked when it is read
-            except (OSError, ValueError) as err:
-                raise InputError(f"image {str(file)!r} cannot be read ({err}): remove or replace it") from None
-            if (width, height) != (self.width, self.height):
-                raise InputError(f"image {file.name} is {width}x{height} but the first is "
+            size = check_image_file(file)
+            if size != (self.width, self.height):
+                raise InputError(f"image {file.name} is {size[0]}x{size[1]} but the first is "
                                  f"{self.width}x{self.height}: all images must have the same size")
 
     def _time_s(self, cap: cv2.VideoCapture, index: int) -> float:
@@ -442,7 +706,7 @@ class FrameSource:
         return self._time_scale * msec / 1000.0
 
     def _iter_video(self, start: int, stop: int | None) -> Iterator[tuple[int, float, np.ndarray]]:
-        cap = cv2.VideoCapture(str(self.path))
+        cap = open_video(self.path)
         times: list[float] = []  # one float per frame: small next to any frame
         try:
             index = 0

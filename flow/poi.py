@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from flow.io import DISPLAY_ROTATIONS, InputError, Roi
+from flow.io import DISPLAY_ROTATIONS, InputError, Roi, read_image
 
 
 def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: str = "mask",
@@ -18,14 +18,18 @@ def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: 
     ``what`` names the mask in messages, ``instead`` the options that can replace it.
     ``rotation_deg``: the video's display rotation (frames are measured as displayed); a
     full-frame mask drawn on the stored frames of a 90/270 degree video is rotated to match
-    (said in ``notes``).
+    (said in ``notes``). A decoder's warning about a mask that decodes (libpng on a colour
+    profile) goes in ``notes`` too, not on stderr.
     """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{what} {str(path)!r} does not exist: check the path or use {instead}")
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    image, complaint = read_image(path, cv2.IMREAD_GRAYSCALE)
     if image is None:
-        raise InputError(f"{what} {str(path)!r} cannot be read: save it as an 8-bit PNG")
+        because = f" ({complaint})" if complaint else ""
+        raise InputError(f"{what} {str(path)!r} cannot be read{because}: save it as an 8-bit PNG")
+    if complaint and notes is not None:
+        notes.append(f"{what} {path.name} decoded with a warning: {complaint}")
     height, width = image.shape
     if rotation_deg in (90, 270) and (height, width) == tuple(frame_size) and (width, height) != tuple(frame_size):
         image = cv2.rotate(image, DISPLAY_ROTATIONS[rotation_deg])
@@ -46,7 +50,7 @@ def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: 
 
 def pixels_outside_roi(path: str | Path, *, frame_size: tuple[int, int], roi: Roi) -> int:
     """How many of a full-frame mask's pixels the ROI leaves out (0 for an ROI-sized mask)."""
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    image, _ = read_image(path, cv2.IMREAD_GRAYSCALE)
     if image is None or (image.shape[1], image.shape[0]) != tuple(frame_size):
         return 0
     inside = image[roi.y:roi.y + roi.height, roi.x:roi.x + roi.width] > 127

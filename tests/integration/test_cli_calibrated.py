@@ -162,3 +162,15 @@ def test_merge_of_parts_scales_like_one_track_run(lens_clip, tmp_path, scale_kin
     # The undistorted scale, not the raw one: 100 ideal px between the points.
     assert track_meta["scale"]["mm_per_px"] == pytest.approx(MM_PER_IDEAL_PX, rel=0.002)
     assert "(undistorted)" in merge_meta["scale"]["source"]
+
+
+def test_an_rms_that_is_no_number_is_reported_as_null(lens_clip, tmp_path) -> None:
+    """A calibration's rms_px is only reported: NaN there (JSON allows it in Python) once failed
+    the run at its very end, when the sidecar was written, after every frame was measured."""
+    calibration = tmp_path / "calibration.json"
+    calibration.write_text(lens_clip["calibration"].read_text().replace('"rms_px": 0.0', '"rms_px": NaN'))
+    out = tmp_path / "out.csv"
+    assert main(["track", str(lens_clip["frames"]), "--fps", "30", "--rect", "6,6,110,80", "--method", "dis",
+                 "--calibration", str(calibration), "--max-frames", "3", "--out", str(out), "--no-progress"]) == 0
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["calibration"]["rms_px"] is None and meta["calibration"]["camera_matrix"] == K.tolist()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -75,6 +76,12 @@ def make_bad_videos(folder: Path) -> None:
     (folder / "not_a_video.mp4").write_text("this is not a video\n")
     (folder / "empty.avi").write_bytes(b"")
     (folder / "inf_scale.json").write_text('{"mm_per_px": Infinity}')
+    huge = "1" + "0" * 400  # an integer no float holds
+    (folder / "deep_scale.json").write_text("[" * 100_000 + "]" * 100_000)
+    (folder / "digits_scale.json").write_text('{"mm_per_px": ' + "9" * 5000 + "}")
+    (folder / "huge_scale.json").write_text('{"mm_per_px": ' + huge + "}")
+    (folder / "true_length.json").write_text('{"known_length_mm": true, "between_px": [10, 20, 10, 40]}')
+    (folder / "huge_point.json").write_text('{"known_length_mm": 5, "between_px": [10, 20, ' + huge + ", 40]}")
 
 
 @pytest.fixture(scope="module")
@@ -269,6 +276,16 @@ BAD = {
                                    "1,1,5000,5"], "lies outside the 160x120 video frame"),
     "infinite scale in file": (["{video}", "--mask", "{mask}", "--scale-file", "{folder}/inf_scale.json"],
                                "needs a positive number under 'mm_per_px'"),
+    "scale file nested too deeply": (["{video}", "--mask", "{mask}", "--scale-file", "{folder}/deep_scale.json"],
+                                     "deep_scale.json is not readable JSON (nested too deeply)"),
+    "scale file with a 5000-digit number": (["{video}", "--mask", "{mask}", "--scale-file",
+                                             "{folder}/digits_scale.json"], "(a number with too many digits)"),
+    "scale too large for a float": (["{video}", "--mask", "{mask}", "--scale-file", "{folder}/huge_scale.json"],
+                                    "'known_length_mm' and 'between_px'), got 1000000000000"),
+    "boolean known length in file": (["{video}", "--mask", "{mask}", "--scale-file", "{folder}/true_length.json"],
+                                     "four numbers X1,Y1,X2,Y2, got True and [10, 20, 10, 40]"),
+    "scale point too large for a float": (["{video}", "--mask", "{mask}", "--scale-file",
+                                           "{folder}/huge_point.json"], "got 5 and [10, 20, 1000000000000"),
     "non-numeric method parameter": (["{video}", "--mask", "{mask}", "--method", "deepflow", "--param",
                                       "alpha=abc"], "parameter alpha must be a finite number, got 'abc'"),
 }
@@ -303,6 +320,61 @@ def test_zero_frame_container_reports_one_line_without_decoder_noise(clip, tmp_p
     assert result.returncode == 2
     assert result.stderr.count("\n") == 1 and "has no frames" in result.stderr, result.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def _undecodable_png(path: Path, image: np.ndarray) -> None:
+    """A PNG of ``image`` whose chunks are sound (Pillow's check passes) but whose data is no
+    zlib stream: libpng fails on it, printing its error on file descriptor 2 itself."""
+    import zlib
+
+    data = cv2.imencode(".png", image)[1].tobytes()
+    start = data.index(b"IDAT") - 4
+    length = int.from_bytes(data[start:start + 4], "big")
+    chunk = b"IDAT" + bytes(i % 251 for i in range(7, 7 + length))
+    path.write_bytes(data[:start + 4] + chunk + zlib.crc32(chunk).to_bytes(4, "big") + data[start + 12 + length:])
+
+
+@pytest.mark.parametrize("problem", ["damaged mp4 header", "first image undecodable", "first image warned about",
+                                     "mask undecodable", "mask a JPEG stub"])
+def test_decoder_noise_never_joins_the_message(clip, tmp_path, capfd, problem) -> None:
+    """OpenCV's log, libpng's and libjpeg's own lines on file descriptor 2 (what a user sees):
+    held back, and the decoder's complaint goes into the one line."""
+    inputs = tmp_path / "inputs"
+    inputs.mkdir()
+    source, mask = clip["images"], clip["mask"]
+    if problem == "damaged mp4 header":  # once misreported as a missing index (moov)
+        source = inputs / "clip.mp4"
+        source.write_bytes(b"\x01" + (clip["folder"] / "whole.mp4").read_bytes()[1:])
+        expected = "is damaged: it holds its MP4/MOV index (moov atom)"
+    elif problem == "first image undecodable":
+        source = inputs / "frames"
+        shutil.copytree(clip["images"], source)
+        _undecodable_png(source / "img_0000.png", np.clip(texture(), 0, 255).astype(np.uint8))
+        expected = "img_0000.png' cannot be read (libpng error: "
+    elif problem == "first image warned about":  # libjpeg decodes it, with a warning, then it is refused
+        source = inputs / "frames"
+        shutil.copytree(clip["images"], source)
+        data = bytearray(cv2.imencode(".jpg", np.clip(texture(), 0, 255).astype(np.uint8))[1].tobytes())
+        at = data.index(b"\xff\xc0")  # the frame header (SOF0): its height, 120, becomes 1
+        data[at + 5:at + 7] = (1).to_bytes(2, "big")
+        (source / "img_0000.jpg").write_bytes(bytes(data))
+        (source / "img_0000.png").unlink()
+        expected = "is 160x120 but the first is 160x1"
+    else:
+        mask = inputs / "mask.png"
+        if problem == "mask undecodable":
+            _undecodable_png(mask, cv2.imread(str(clip["mask"]), cv2.IMREAD_GRAYSCALE))
+            expected = "mask.png' cannot be read (libpng error: "
+        else:  # the start of a JPEG, named .png: libjpeg prints on fd 2 itself too
+            mask.write_bytes(b"\xff\xd8\xff\xe0")
+            expected = "mask.png' cannot be read (Premature end of JPEG file): save it as an 8-bit PNG"
+    out = tmp_path / "out" / "o.csv"
+    capfd.readouterr()
+    assert main(["track", str(source), "--fps", "30", "--mask", str(mask), "--method", "dis",
+                 "--out", str(out), "--no-progress"]) == 2
+    err = capfd.readouterr().err
+    assert err.count("\n") == 1 and expected in err, err
+    assert not out.parent.exists()
 
 
 def test_console_script_reports_bad_input_without_traceback(tmp_path) -> None:
@@ -638,7 +710,8 @@ def test_deep_data_is_measured_at_full_depth(tmp_path) -> None:
     assert any("12-bit data was rounded to 8 bits" in note for note in meta["notes"])
 
 
-@pytest.mark.parametrize("problem", ["mis-sized image", "corrupt image", "parent is a file", "truncated mp4"])
+@pytest.mark.parametrize("problem", ["mis-sized image", "corrupt image", "png checksum error", "truncated jpeg",
+                                     "truncated tiff", "parent is a file", "truncated mp4"])
 def test_problems_found_before_the_first_frame(clip, tmp_path, monkeypatch, capsys, problem) -> None:
     """What can be checked up front is: a bad image at the end of a folder, an output
     folder that cannot exist. No frame is measured first (no wasted hour)."""
@@ -653,6 +726,23 @@ def test_problems_found_before_the_first_frame(clip, tmp_path, monkeypatch, caps
     elif problem == "corrupt image":
         (folder / "f9.png").write_bytes((folder / "f0.png").read_bytes()[:200])
         expected = "f9.png' cannot be read"
+    elif problem == "png checksum error":  # Pillow's check raised SyntaxError: a traceback
+        data = bytearray((folder / "f0.png").read_bytes())
+        data[data.index(b"IDAT") + 100] ^= 0xFF
+        (folder / "f9.png").write_bytes(bytes(data))
+        expected = "f9.png' cannot be read (broken PNG file (bad header checksum in b'IDAT'))"
+    elif problem in ("truncated jpeg", "truncated tiff"):  # passed the check: refused (or half grey) when reached
+        suffix = ".jpg" if problem == "truncated jpeg" else ".tif"
+        image = np.clip(texture(2.0), 0, 255).astype(np.uint8)
+        if suffix == ".jpg":
+            cv2.imwrite(str(folder / "f9.jpg"), image)
+        else:  # Pillow's layout: the directory first, the strips after it
+            from PIL import Image
+
+            Image.fromarray(image).save(folder / "f9.tif")
+        data = (folder / f"f9{suffix}").read_bytes()
+        (folder / f"f9{suffix}").write_bytes(data[: len(data) * 3 // 4])
+        expected = f"f9{suffix}' cannot be read (truncated: "
     elif problem == "parent is a file":
         (tmp_path / "taken").write_text("a file")
         out = tmp_path / "taken" / "o.csv"

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from flow.calibration import Undistorter, calibrate, scale_from_known_length
+from flow.calibration import Undistorter, calibrate, load_calibration, scale_from_known_length
 from flow.io import InputError, Roi
 
 # 960 x 720: at half that size the corner detector's own error (~0.02 px, from the curved,
@@ -194,3 +194,71 @@ def test_mask_and_points_drawn_on_raw_frames_follow_the_undistortion() -> None:
     plain = scale_from_known_length(50.0, "100,100,180,100")
     corrected = scale_from_known_length(50.0, "100,100,180,100", undistorter.undistort_points)
     assert corrected < 0.95 * plain
+
+
+CALIBRATION_FILE = {"camera_matrix": [[110.0, 0.0, 47.5], [0.0, 110.0, 31.5], [0.0, 0.0, 1.0]],
+                    "dist_coeffs": [-0.12, 0.05, 0.001, -0.001, 0.0], "rms_px": 0.21, "image_size": [96, 64]}
+HUGE = "1" + "0" * 400  # an integer no float holds
+
+
+def _entry(key: str, text: str) -> str:
+    """The calibration file's JSON with ``key`` set to the JSON ``text`` as written."""
+    import json
+
+    return json.dumps({**CALIBRATION_FILE, key: "@"}).replace('"@"', text)
+
+
+BAD_CALIBRATIONS = {
+    "nested too deeply": ("[" * 100_000 + "]" * 100_000, "is not readable JSON (nested too deeply)"),
+    "5000-digit number": (_entry("rms_px", "9" * 5000), "is not readable JSON (a number with too many digits)"),
+    "not an object": ("[1, 2]", "is not a refflow calibration"),
+    "focal length too large for a float": (_entry("camera_matrix", f"[[{HUGE}, 0, 47], [0, 110, 31], [0, 0, 1]]"),
+                                           "'camera_matrix' needs 3x3 finite numbers"),
+    "NaN focal length": (_entry("camera_matrix", "[[NaN, 0, 47], [0, 110, 31], [0, 0, 1]]"), "'camera_matrix'"),
+    "zero focal length": (_entry("camera_matrix", "[[110, 0, 47], [0, 0, 31], [0, 0, 1]]"), "positive focal"),
+    "boolean in the matrix": (_entry("camera_matrix", "[[110, 0, 47], [0, 110, 31], [0, 0, true]]"), "'camera_matrix'"),
+    "ragged matrix": (_entry("camera_matrix", "[[110, 0], [0, 110, 31, 0], [0, 0, 1]]"), "'camera_matrix'"),
+    "one distortion coefficient": (_entry("dist_coeffs", "[0.1]"), "'dist_coeffs' needs 4, 5, 8, 12, 14 finite"),
+    "null distortion": (_entry("dist_coeffs", "null"), "'dist_coeffs' needs"),
+    "infinite distortion": (_entry("dist_coeffs", f"[-0.1, 0.05, 0, 0, {HUGE}]"), "'dist_coeffs' needs"),
+    "empty image size": (_entry("image_size", "[]"), "'image_size' needs [width, height]"),
+    "one-entry image size": (_entry("image_size", "[96]"), "'image_size' needs"),
+    "null image size": (_entry("image_size", "null"), "'image_size' needs"),
+    "number as image size": (_entry("image_size", "5"), "'image_size' needs"),
+    "boolean image size": (_entry("image_size", "false"), "'image_size' needs"),
+    "fractional image size": (_entry("image_size", "[96.5, 64]"), "'image_size' needs"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CALIBRATIONS))
+def test_a_malformed_calibration_file_is_refused_in_one_line(tmp_path, case) -> None:
+    """Every entry the undistortion uses is checked on loading: nothing reaches OpenCV, a
+    formatted message or the sidecar as a traceback."""
+    text, expected = BAD_CALIBRATIONS[case]
+    path = tmp_path / "calibration.json"
+    path.write_text(text)
+    with pytest.raises(InputError) as refused:
+        load_calibration(path)
+    message = str(refused.value)
+    assert expected in message and str(path) in message and "\n" not in message, message
+    assert len(message) < 400, message
+
+
+def test_load_calibration_hands_on_clean_values(tmp_path) -> None:
+    """A flat matrix becomes 3x3, integers floats; an rms_px that is no finite number is only
+    reported, so it becomes None (JSON null in the sidecar) instead of failing the run's end."""
+    import json
+
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps({**CALIBRATION_FILE, "camera_matrix": [110, 0, 47, 0, 110, 31, 0, 0, 1]}))
+    loaded = load_calibration(path)
+    assert loaded["camera_matrix"] == [[110.0, 0.0, 47.0], [0.0, 110.0, 31.0], [0.0, 0.0, 1.0]]
+    assert loaded["dist_coeffs"] == CALIBRATION_FILE["dist_coeffs"] and loaded["image_size"] == [96, 64]
+    assert loaded["rms_px"] == 0.21
+    for rms in ("NaN", "Infinity", "true", '"small"', HUGE):
+        path.write_text(_entry("rms_px", rms))
+        assert load_calibration(path)["rms_px"] is None, rms
+    without = {k: v for k, v in CALIBRATION_FILE.items() if k != "image_size"}
+    path.write_text(json.dumps(without))
+    assert "image_size" not in load_calibration(path)
+    Undistorter(load_calibration(path), Roi(0, 0, 96, 64), (96, 64))  # OpenCV takes what it hands on

@@ -119,3 +119,202 @@ def test_as_uint8_and_significant_bits() -> None:
     assert significant_bits(np.array([0, 1023], np.uint16)) == 10
     assert significant_bits(np.array([0, 2460], np.uint16)) == 12
     assert significant_bits(np.array([0, 65535], np.uint16)) == 16
+
+
+def _png_with_a_checksum_error(path) -> None:
+    data = bytearray(cv2.imencode(".png", np.full((6, 8), 90, np.uint8))[1].tobytes())
+    data[data.index(b"IDAT") + 6] ^= 0xFF  # a byte of the image data: its chunk's CRC no longer matches
+    path.write_bytes(bytes(data))
+
+
+def _png_with_undecodable_data(path) -> None:
+    """A PNG whose chunks are sound (checksums match: Pillow's check passes) but whose image
+    data is not zlib: only decoding finds it, and libpng prints its error on fd 2."""
+    import zlib
+
+    data = cv2.imencode(".png", np.full((6, 8), 90, np.uint8))[1].tobytes()
+    start = data.index(b"IDAT") - 4
+    length = int.from_bytes(data[start:start + 4], "big")
+    garbage = bytes(range(7, 7 + length))
+    chunk = b"IDAT" + garbage
+    path.write_bytes(data[:start + 4] + chunk + zlib.crc32(chunk).to_bytes(4, "big") + data[start + 12 + length:])
+
+
+def _cut(path, keep: float) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+
+
+def _tiff_with_a_broken_directory(path, samples: int | None = None, entries: int | None = None) -> None:
+    """A TIFF from OpenCV (directory last) with one field of its directory overwritten."""
+    data = bytearray(cv2.imencode(".tif", np.full((6, 8), 90, np.uint8))[1].tobytes())
+    ifd = int.from_bytes(data[4:8], "little")
+    count = int.from_bytes(data[ifd:ifd + 2], "little")
+    if entries is not None:
+        data[ifd:ifd + 2] = (count + entries).to_bytes(2, "little")  # Pillow: "Corrupt EXIF data"
+    for i in range(count if samples is not None else 0):
+        entry = ifd + 2 + 12 * i
+        if int.from_bytes(data[entry:entry + 2], "little") == 277:  # SamplesPerPixel
+            data[entry + 8:entry + 12] = samples.to_bytes(4, "little")  # Pillow logs an error
+    path.write_bytes(bytes(data))
+
+
+def _damage(folder, problem: str):
+    """Damage the third of five 8x6 images in ``folder``; return (name, message expected)."""
+    name = "f2.png"
+    if problem == "png checksum error":  # Pillow raises SyntaxError
+        _png_with_a_checksum_error(folder / name)
+        return name, "bad header checksum in b'IDAT'"
+    if problem == "png short of its last byte":  # Pillow's check stops before IEND's checksum
+        cv2.imwrite(str(folder / name), np.full((6, 8), 90, np.uint8))
+        (folder / name).write_bytes((folder / name).read_bytes()[:-1])
+        return name, "the PNG's end chunk (IEND) is missing or broken"
+    if problem == "truncated jpeg":  # decodes, grey-padded, with only a libjpeg warning
+        name = "f2.jpg"
+        noise = np.random.default_rng(0).integers(0, 255, (6, 8)).astype(np.uint8)
+        cv2.imwrite(str(folder / name), noise, [cv2.IMWRITE_JPEG_QUALITY, 100])
+        _cut(folder / name, 0.95)
+        return name, "truncated: the JPEG data has no end marker"
+    if problem == "jpeg with a bogus table":  # Pillow reads its header; libjpeg cannot decode it
+        name = "f2.jpg"
+        noise = np.random.default_rng(0).integers(0, 255, (6, 8)).astype(np.uint8)
+        data = bytearray(cv2.imencode(".jpg", noise)[1].tobytes())
+        at = data.index(b"\xff\xc4")  # the first Huffman table (DHT)
+        data[at + 5:at + 21] = b"\xff" * 16  # its 16 code counts: far more codes than exist
+        (folder / name).write_bytes(bytes(data))
+        return name, "damaged: libjpeg cannot read it"
+    if problem == "truncated tiff":  # directory first (Pillow's layout), strips cut off
+        name = "f2.tif"
+        from PIL import Image
+
+        Image.fromarray(np.full((6, 8), 90, np.uint8)).save(folder / name)
+        _cut(folder / name, 0.9)
+        return name, "TIFF image data lies beyond the end of the file"
+    if problem == "tiff Pillow cannot identify":  # Pillow logs, OpenCV cannot decode it either
+        name = "f2.tif"
+        _tiff_with_a_broken_directory(folder / name, samples=45825)
+        return name, "cannot be read"
+    if problem == "not an image":
+        (folder / name).write_bytes(b"\x00\x05\x16\x07 AppleDouble")  # macOS's ._ files
+        return name, "not an image Pillow or OpenCV can read"
+    raise AssertionError(problem)
+
+
+@pytest.mark.parametrize("problem", ["png checksum error", "png short of its last byte", "truncated jpeg",
+                                     "jpeg with a bogus table", "truncated tiff", "tiff Pillow cannot identify",
+                                     "not an image"])
+def test_a_damaged_image_anywhere_is_refused_when_the_folder_is_opened(tmp_path, capfd, caplog,
+                                                                       problem) -> None:
+    """Found by the folder scan, before any frame is read, in one line: no Pillow warning or log
+    record, nothing the decoders print."""
+    import warnings
+
+    for i in range(5):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), np.full((6, 8), 90, np.uint8))
+    (tmp_path / "f2.png").unlink()
+    name, expected = _damage(tmp_path, problem)
+    with warnings.catch_warnings(record=True) as shown, pytest.raises(InputError) as refused:
+        warnings.simplefilter("always")
+        FrameSource(tmp_path, fps=10.0)
+    message = str(refused.value)
+    assert name in message and expected in message and "\n" not in message, message
+    assert not shown and not [r for r in caplog.records if r.name.startswith("PIL")]
+    assert capfd.readouterr().err == ""
+
+
+def test_the_folder_scan_keeps_sound_files_and_skips_subfolders(tmp_path, caplog) -> None:
+    """A JPEG padded with zeros after its end marker (some cameras) is sound, and so is one whose
+    EXIF holds a thumbnail (markers of its own); a folder named like an image is no frame."""
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"f{i}.jpg"), np.full((6, 8), 90, np.uint8))
+    padded = tmp_path / "f1.jpg"
+    padded.write_bytes(padded.read_bytes() + b"\0" * 300)
+    exif = tmp_path / "f2.jpg"  # an EXIF segment holding a thumbnail: markers of its own, SOS included
+    thumbnail = b"Exif\0\0" + b"\xff\xd8\xff\xdb\x00\x04\x00\x00\xff\xda\x00\x02\x12\x34\xff\xd9"
+    segment = b"\xff\xe1" + (len(thumbnail) + 2).to_bytes(2, "big") + thumbnail
+    exif.write_bytes(exif.read_bytes()[:2] + segment + exif.read_bytes()[2:])
+    (tmp_path / "f3.jpg").mkdir()
+    source = FrameSource(tmp_path, fps=10.0)
+    assert [index for index, _, _ in source] == [0, 1, 2]
+    assert not [r for r in caplog.records if r.name.startswith("PIL")]
+
+
+def test_pillow_says_nothing_while_the_folder_is_scanned(tmp_path, caplog) -> None:
+    """A TIFF whose directory claims more entries than it holds: Pillow warns ("Corrupt EXIF
+    data"), which a user would see as a second line next to any message; the scan keeps quiet."""
+    import warnings
+
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), np.full((6, 8), 90, np.uint8))
+    _tiff_with_a_broken_directory(tmp_path / "f1.tif", entries=40)
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        FrameSource(tmp_path, fps=10.0)
+    assert not shown and not [r for r in caplog.records if r.name.startswith("PIL")]
+
+
+def test_read_image_holds_decoder_noise_back_for_the_message(tmp_path, capfd) -> None:
+    """libpng prints its errors on file descriptor 2 itself: they become the complaint that goes
+    into the one-line message (a mask, the first image of a folder), and nothing reaches stderr."""
+    from flow.io import read_image
+
+    good = tmp_path / "good.png"
+    cv2.imwrite(str(good), np.full((6, 8), 90, np.uint8))
+    bad = tmp_path / "bad.png"
+    _png_with_undecodable_data(bad)
+    image, complaint = read_image(good, cv2.IMREAD_GRAYSCALE)
+    assert image.shape == (6, 8) and complaint == ""
+    image, complaint = read_image(bad, cv2.IMREAD_GRAYSCALE)
+    assert image is None and complaint.startswith("libpng error"), complaint
+    assert capfd.readouterr().err == ""
+    with pytest.raises(InputError, match=r"mask '.*bad.png' cannot be read \(libpng error: .*\): save it"):
+        load_mask(bad, frame_size=(8, 6), roi=Roi(0, 0, 8, 6))
+    first = tmp_path / "frames"
+    first.mkdir()
+    _png_with_undecodable_data(first / "f0.png")
+    cv2.imwrite(str(first / "f1.png"), np.full((6, 8), 90, np.uint8))
+    with pytest.raises(InputError, match=r"f0.png' cannot be read \(libpng error: .*\): remove or replace it"):
+        FrameSource(first, fps=10.0)
+    assert capfd.readouterr().err == ""
+
+
+def test_a_decoder_warning_on_an_image_that_decodes_goes_in_the_notes(tmp_path, capfd) -> None:
+    """libpng warns about a broken colour profile and decodes: measured, the warning in the
+    notes (on stderr it would be a second line next to any refusal that follows)."""
+    from PIL import Image
+
+    image = Image.fromarray(np.full((6, 8), 255, np.uint8))
+    image.save(tmp_path / "mask.png", icc_profile=b"not a profile")
+    notes: list[str] = []
+    assert load_mask(tmp_path / "mask.png", frame_size=(8, 6), roi=Roi(0, 0, 8, 6), notes=notes).all()
+    assert len(notes) == 1 and "mask mask.png decoded with a warning: libpng warning: iCCP" in notes[0], notes
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    image.save(frames / "f0.png", icc_profile=b"not a profile")
+    image.save(frames / "f1.png")
+    source = FrameSource(frames, fps=10.0)
+    assert any("image f0.png (the first) decoded with a warning: libpng warning" in n for n in source.notes)
+    assert capfd.readouterr().err == ""
+
+
+def test_opencv_logs_nothing_once_refflow_quiets_it(tmp_path) -> None:
+    """`refflow` silences OpenCV's own log (its `[ERROR:0@...]` lines) and ffmpeg's, unless the
+    user asked for them, and opens videos with ffmpeg only (no image-sequence fallback, no AVI
+    parser of its own). In a fresh process: ffmpeg reads its level once, at its first use."""
+    import os
+    import subprocess
+    import sys
+
+    clip = tmp_path / "clip.mp4"  # an MP4 whose first box header is damaged
+    clip.write_bytes(b"\x01\x00\x00\x20ftypisom" + bytes(200))
+    script = ("import cv2, sys; from flow.io import open_video, quiet_decoder_logs; quiet_decoder_logs(); "
+              "print(cv2.utils.logging.getLogLevel()); "
+              "assert not open_video(sys.argv[1]).isOpened() and cv2.imread(sys.argv[1]) is None")
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENCV_LOG_LEVEL", "OPENCV_FFMPEG_LOGLEVEL")}
+    quiet = subprocess.run([sys.executable, "-c", script, str(clip)], capture_output=True, text=True,
+                           env=env, timeout=60)
+    assert quiet.returncode == 0 and quiet.stderr == "", quiet.stderr
+    assert int(quiet.stdout) == cv2.utils.logging.LOG_LEVEL_SILENT
+    debugging = subprocess.run([sys.executable, "-c", script, str(clip)], capture_output=True, text=True,
+                               env={**env, "OPENCV_LOG_LEVEL": "INFO"}, timeout=60)
+    assert int(debugging.stdout.split()[0]) == cv2.utils.logging.LOG_LEVEL_INFO  # the user's own level is kept
