@@ -3,7 +3,9 @@
 Subcommands: ``track`` (measure), ``merge`` (join frame ranges tracked
 separately), ``methods`` (list), ``calibrate`` (checkerboard), ``pois`` (figure
 of the mask POIs next to the corners KLT would use), ``plot`` (time history and
-spectrum of measured CSVs).
+spectrum of measured CSVs), ``modal`` (frequencies, damping and mode shapes of
+several measured points), ``export`` (UFF time histories for modal software),
+``gui`` (a page in the browser to draw, scale, run and look).
 
 Bad input ends with a one-line message on stderr and exit code 2, and no output
 file; anything else that goes wrong is a bug and shows its traceback.
@@ -26,7 +28,12 @@ import numpy as np
 
 from flow import registry
 from flow.camfiles import companion_files
+from flow.export import add_parser as add_export_parser
+from flow.gui import add_parser as add_gui_parser
+from flow.gui.project import PROJECT_HELP, expand_project_argv
 from flow.io import FrameSource, InputError, Roi, json_number, load_json, quiet_decoder_logs, shown
+from flow.modal import add_parser as add_modal_parser
+from flow.outputs import check_outputs
 from refflow.io import atomic_paths, json_text, versions, write_json
 
 EXIT_USAGE = 2
@@ -319,33 +326,8 @@ def _output_names(args: argparse.Namespace) -> list[Path]:
     raw, poi_tracks = getattr(args, "raw_tracks", None), args.save_poi_tracks
     names = ([Path(raw)] if raw else []) + ([Path(poi_tracks)] if poi_tracks else []) \
         + ([Path(args.out).with_suffix(".json"), Path(args.out)] if args.out else [])
-    if len({name.resolve() for name in names}) != len(names):
-        raise InputError(f"two outputs share a name ({', '.join(map(str, names))}): give each its own file")
-    for name in names:
-        _check_writable(name)
-    inputs = {path.resolve(): option for option, path in _input_paths(args)}
-    folders = {path: option for path, option in inputs.items() if path.is_dir()}
-    for name in names:
-        if name.resolve().parent in folders:
-            raise InputError(f"output {name} is inside {folders[name.resolve().parent]} (a folder of input "
-                             "images): refflow never writes among its inputs; choose another --out")
-        if name.resolve() in inputs:
-            raise InputError(f"output {name} is the run's input ({inputs[name.resolve()]}): refflow never "
-                             "writes over an input; choose another --out (the sidecar is <out>.json)")
+    check_outputs(names, _input_paths(args), option="--out (the sidecar is <out>.json)")
     return names
-
-
-def _check_writable(path: Path) -> None:
-    """Refuse an output whose folder cannot be made or written, before any frame is measured."""
-    import os
-
-    parent = path.resolve().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise InputError(f"output {path}: {parent} is a file, not a folder: choose another --out")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError(f"output {path}: folder {parent} is not writable: choose another --out")
 
 
 def _input_paths(args: argparse.Namespace) -> list[tuple[str, Path]]:
@@ -521,8 +503,12 @@ def cmd_track(args: argparse.Namespace) -> int:
         notes.append(f"{name} takes 8-bit images: the {source.bit_depth}-bit data was rounded to 8 bits for it "
                      "(the default method measures at full depth)")
     roi = source.roi
+    # Where the points are (full-frame pixels; undistorted with a calibration): a measurement
+    # point's position, e.g. for mode shapes (`refflow modal`).
+    centroid = [round(float(np.mean(tracks.x_px)) + roi.x, 3), round(float(np.mean(tracks.y_px)) + roi.y, 3)]
     poi_info = {"count": int(len(tracks.x_px)), "source": "features" if sparse else "mask",
-                "mask_pixels": int(mask.sum()), "mask_pixels_outside_roi": outside, "grid_step": args.grid_step}
+                "mask_pixels": int(mask.sum()), "mask_pixels_outside_roi": outside, "grid_step": args.grid_step,
+                "centroid_px": centroid}
     background_info = None if background is None else {
         "source": args.background_mask or f"rect {args.background_rect}", "points": int(len(background.xy)),
         "model": background.model, "requested_model": args.background_model}
@@ -717,6 +703,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-truncated", action="store_true",
                    help="measure the frames of a truncated video that decode (default: refuse it)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--project", metavar="FILE", help=PROJECT_HELP)
     p.set_defaults(func=cmd_track)
 
     p = sub.add_parser("merge", help="join raw-tracks parts (track --frames ... --raw-tracks) into one measurement")
@@ -749,6 +736,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--min-hz", type=float, help="ignore peaks below this frequency (default: one cycle per record)")
     p.add_argument("--title", help="figure title")
     p.set_defaults(func=cmd_plot)
+    add_modal_parser(sub)
+    add_export_parser(sub)
+    add_gui_parser(sub)
     return parser
 
 
@@ -767,6 +757,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     quiet_decoder_logs()
     parser = build_parser()
+    try:
+        argv = expand_project_argv(sys.argv[1:] if argv is None else argv)
+    except InputError as err:
+        print(f"refflow track: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
     args = parser.parse_args(argv)
     previous = None
     if threading.current_thread() is threading.main_thread():

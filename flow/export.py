@@ -13,6 +13,7 @@ ID line 4 says how many frames were bridged.
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,7 @@ import numpy as np
 
 from flow.errors import InputError
 from flow.figures import read_measurement, resample_uniform
+from flow.outputs import check_outputs
 from refflow.io import atomic_path
 
 # UFF codes: function type 1 = time response; specific data types 17 = time, 8 = displacement;
@@ -71,9 +73,32 @@ def write_uff(csv_path: str | Path, out_path: str | Path) -> int:
     UFF file ``out_path`` (all or nothing); returns the number of time histories."""
     import pyuff
 
+    csv_path, out_path = Path(csv_path), Path(out_path)
+    check_outputs([out_path], [(f"the CSV {csv_path}", csv_path),
+                               (f"{csv_path}'s sidecar", csv_path.with_suffix(".json"))])
     records = uff58_records(csv_path)
     with atomic_path(out_path) as tmp:
         Path(tmp).unlink(missing_ok=True)  # pyuff appends to an existing file
         uff = pyuff.UFF(str(tmp))
         uff.write_sets(records, mode="add")
     return len(records) - 1
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    if Path(args.out).suffix.lower() not in (".uff", ".unv"):
+        raise InputError(f"--out {args.out}: the export format is the universal file format: name it .uff or .unv")
+    count = write_uff(args.csv, args.out)
+    print(f"refflow export: {count} time histories (UFF dataset 58) -> {args.out}")
+    return 0
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``refflow export`` to the ``refflow`` subcommands; returns its parser."""
+    p = subparsers.add_parser(
+        "export", help="a measurement as universal file format (UFF 58) time histories for modal software",
+        description="Write a `refflow track` CSV as a universal file format file: a units record (dataset "
+                    "164, SI) and one time history (dataset 58) per direction, in m, on a uniform clock.")
+    p.add_argument("csv", help="a `refflow track` CSV")
+    p.add_argument("--out", required=True, help="output file, .uff or .unv")
+    p.set_defaults(func=cmd_export)
+    return p

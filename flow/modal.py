@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ import numpy as np
 
 from flow.errors import InputError
 from flow.figures import read_measurement, resample_uniform
+from flow.outputs import check_outputs
 from refflow.io import atomic_paths, json_text, versions
 
 # refflow.modal (scipy.signal, a second to import) is imported where it is used: the parser of
@@ -84,7 +84,9 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
     _check_options(paths, n_modes, band_hz, direction)
     figures = figure_paths(out_json, out_prefix)
     outputs = [*figures, Path(out_json)]  # the JSON last: it is what other tools look for
-    _check_outputs(outputs, paths)
+    check_outputs(outputs, [(what, path) for csv_path in paths for what, path in (
+        (f"the CSV {csv_path}", csv_path), (f"{csv_path}'s sidecar", csv_path.with_suffix(".json")))],
+        option="--out or --figures")
     measured = [read_measurement(path) for path in paths]
     _check_shared_times(paths, measured)
     units = "mm" if all(m["has_mm"] for m in measured) else "px"
@@ -158,28 +160,6 @@ def _check_options(paths: list[Path], n_modes: int, band_hz: tuple[float, float]
     for i, path in enumerate(resolved):
         if path in resolved[:i]:
             raise InputError(f"{paths[i]} is given twice: each point's CSV once")
-
-
-def _check_outputs(outputs: list[Path], inputs: list[Path]) -> None:
-    """Refuse outputs that are inputs (a CSV or its sidecar) or cannot be written, before any work."""
-    if len({p.resolve() for p in outputs}) != len(outputs):
-        raise InputError(f"two outputs share a name ({', '.join(map(str, outputs))}): "
-                         "choose another --out or --figures")
-    taken = {}
-    for path in inputs:
-        taken[path.resolve()] = str(path)
-        taken[path.with_suffix(".json").resolve()] = f"{path}'s sidecar"
-    for out in outputs:
-        if out.resolve() in taken:
-            raise InputError(f"output {out} is an input ({taken[out.resolve()]}): refflow never writes "
-                             "over an input; choose another --out or --figures")
-        parent = out.resolve().parent
-        while not parent.exists():
-            parent = parent.parent
-        if not parent.is_dir():
-            raise InputError(f"output {out}: {parent} is a file, not a folder: choose another --out")
-        if not os.access(parent, os.W_OK | os.X_OK):
-            raise InputError(f"output {out}: folder {parent} is not writable: choose another --out")
 
 
 def _check_shared_times(paths: list[Path], measured: list[dict[str, Any]]) -> None:

@@ -70,3 +70,18 @@ def test_uff_refuses_a_run_without_enough_valid_frames(tmp_path) -> None:
     with pytest.raises(InputError, match="fewer than 4 valid frames"):
         write_uff(source, tmp_path / "bad.uff")
     assert not (tmp_path / "bad.uff").exists() and list(tmp_path.iterdir()) == [source]
+
+
+def test_refflow_export_command(tmp_path, capsys) -> None:
+    from flow.cli import main
+
+    t = np.arange(10) / 30.0
+    source = tmp_path / "run.csv"
+    write_csv(source, t, np.linspace(0, 2, 10), np.zeros(10), np.ones(10, bool), mm_per_px=0.5)
+    assert main(["export", str(source), "--out", str(tmp_path / "run.uff")]) == 0
+    assert len(pyuff.UFF(str(tmp_path / "run.uff")).read_sets()) == 3
+    for bad in (source, source / "inside.uff"):  # the input itself; a folder that is a file
+        before = sorted(tmp_path.iterdir())
+        code = main(["export", str(source), "--out", str(bad)])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and len(err.splitlines()) == 1 and sorted(tmp_path.iterdir()) == before, err

@@ -171,7 +171,7 @@ def test_a_failure_while_writing_leaves_no_file(measured, tmp_path, monkeypatch)
 
 def test_outputs_over_inputs_and_bad_options_are_refused(measured, tmp_path) -> None:
     paths = measured["paths"]
-    with pytest.raises(InputError, match="is an input"):
+    with pytest.raises(InputError, match="never writes over an input"):
         run_modal(paths, out_json=paths[0].with_suffix(".json"))
     with pytest.raises(InputError, match="given twice"):
         run_modal([paths[0], paths[0]], out_json=tmp_path / "m.json")
