@@ -69,6 +69,23 @@ def find_corners(grey: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
     return cv2.cornerSubPix(grey, corners, (half, half), (-1, -1), criteria)
 
 
+# A calibration whose corners reproject worse than this is not a calibration (a good one is
+# below 0.5 px; a degenerate set of views reads thousands or millions of px).
+MAX_RMS_PX = 2.0
+# Views whose corners all lie within this of an earlier view's are the same view.
+DISTINCT_VIEW_PX = 1.0
+
+
+def _distinct_views(image_points: list[np.ndarray]) -> int:
+    """How many views differ from every earlier one (some corner moved > DISTINCT_VIEW_PX)."""
+    kept: list[np.ndarray] = []
+    for corners in image_points:
+        points = corners.reshape(-1, 2)
+        if all(np.abs(points - other).max() > DISTINCT_VIEW_PX for other in kept):
+            kept.append(points)
+    return len(kept)
+
+
 def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
               max_views: int = 60, fix_k3: bool = True, step: int = 1) -> dict[str, Any]:
     """Calibrate intrinsics and distortion from checkerboard views.
@@ -115,6 +132,12 @@ def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
         raise InputError(
             f"the {board[0]}x{board[1]} board was found in {len(image_points)} of "
             f"{frames.frames_read} images; need at least 3: check --board (inner corners) and the images")
+    distinct = _distinct_views(image_points)
+    if distinct < 3:
+        raise InputError(
+            f"the board views are (nearly) the same: {distinct} of the {len(image_points)} views differ by "
+            f"more than {DISTINCT_VIEW_PX:g} px; move or tilt the board (or the camera) between views, "
+            "across the whole frame")
     if len(image_points) > max_views:
         keep = np.linspace(0, len(image_points) - 1, max_views).round().astype(int)
         image_points = [image_points[i] for i in keep]
@@ -122,6 +145,12 @@ def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
     rms, camera_matrix, dist, _, _ = cv2.calibrateCamera(
         [obj] * len(image_points), image_points, size, None, None,
         flags=cv2.CALIB_FIX_K3 if fix_k3 else 0)
+    if not (math.isfinite(rms) and rms <= MAX_RMS_PX and np.isfinite(camera_matrix).all()
+            and np.isfinite(dist).all() and camera_matrix[0, 0] > 0 and camera_matrix[1, 1] > 0):
+        raise InputError(
+            f"the calibration failed: its reprojection error is {rms:.3g} px (a usable one is below "
+            f"{MAX_RMS_PX:g} px, a good one below 0.5 px); take 10 or more sharp views of the whole board, "
+            "tilted and spread across the frame, and check --board and --square-mm")
     return {
         "camera_matrix": camera_matrix.tolist(),
         "dist_coeffs": dist.ravel()[:5].tolist(),

@@ -33,7 +33,7 @@ from flow.gui import add_parser as add_gui_parser
 from flow.gui.project import PROJECT_HELP, expand_project_argv
 from flow.io import FrameSource, InputError, Roi, json_number, load_json, quiet_decoder_logs, shown
 from flow.modal import add_parser as add_modal_parser
-from flow.outputs import check_outputs
+from flow.outputs import check_outputs, claimed
 from refflow.io import atomic_paths, json_text, versions, write_json
 
 EXIT_USAGE = 2
@@ -447,10 +447,15 @@ def cmd_track(args: argparse.Namespace) -> int:
     _positive("--fps", args.fps, "the camera frame rate in frames per second")
     if args.max_frames is not None and args.max_frames < 1:
         raise InputError(f"--max-frames {args.max_frames} must be >= 1")
-    if args.jobs is None:
-        args.jobs = available_cores()
-    if args.jobs < 1:
+    if args.jobs is not None and args.jobs < 1:
         raise InputError(f"--jobs {args.jobs} must be >= 1")
+    cores = available_cores()
+    if args.jobs is not None and args.jobs > cores:
+        # More jobs than cores only builds more method instances (memory) for no speed.
+        note = f"--jobs {args.jobs} is more than the {cores} cores this process may use: {cores} jobs"
+        notes.append(note)
+        print(f"refflow track: note: {note}", file=sys.stderr)
+    args.jobs = min(args.jobs or cores, cores)
     if not args.out and not args.raw_tracks:
         raise InputError("nothing to write: pass --out CSV (measurement) and/or --raw-tracks NPZ (unfiltered part)")
     if args.save_poi_tracks and not args.out:
@@ -576,6 +581,7 @@ def cmd_merge(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from flow.calibration import calibrate, parse_board
 
+    check_outputs([Path(args.out)], [("the board images", Path(args.input))])
     result = calibrate(args.input, board=parse_board(args.board), square_mm=args.square_mm,
                        fix_k3=not args.with_k3, step=args.step, max_views=args.max_views)
     result["versions"] = versions()
@@ -742,6 +748,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _claims(args: argparse.Namespace) -> list[Path]:
+    """The files a command writes that a second run at the same time must not write too."""
+    names = [getattr(args, option, None) for option in ("out", "raw_tracks")]
+    return [Path(name) for name in names if isinstance(name, str) and name]
+
+
 class Terminated(BaseException):
     """SIGTERM (what `timeout`, SLURM and `kill` send), raised where the run is, so that
     every ``finally`` and all-or-nothing output set cleans up as on Ctrl-C."""
@@ -767,7 +779,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
-        return args.func(args)
+        with claimed(_claims(args)) as existing:
+            code = args.func(args)
+            if code == 0 and existing:
+                print(f"refflow {args.command}: note: replaced the earlier {', '.join(map(str, existing))}",
+                      file=sys.stderr)
+            return code
     except Terminated:
         print(f"refflow {args.command}: terminated (SIGTERM); no output written", file=sys.stderr)
         return 143

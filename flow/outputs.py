@@ -4,6 +4,8 @@ them is one of its inputs (refflow never writes over what it reads)."""
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from flow.errors import InputError
@@ -32,3 +34,55 @@ def check_outputs(outputs: list[Path], inputs: list[tuple[str, Path]], *, option
             raise InputError(f"output {out}: {parent} is a file, not a folder: choose another {option}")
         if not os.access(parent, os.W_OK | os.X_OK):
             raise InputError(f"output {out}: folder {parent} is not writable: choose another {option}")
+
+
+def _lock_path(path: Path) -> Path:
+    return path.parent / f".{path.name}.refflow-lock"
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # a process of another user
+    return True
+
+
+@contextmanager
+def claimed(outputs: list[Path], *, option: str = "--out") -> Iterator[list[Path]]:
+    """Hold ``outputs`` for this run: a second run writing the same file while this one
+    measures is refused (its CSV and sidecar would interleave with ours), with the first's
+    process number. Yields the outputs that exist already (a re-run replaces them). The claim
+    is a hidden lock file beside each output, removed when the run ends; one left by a run
+    that was killed outright (its process gone) is taken over."""
+    taken: list[Path] = []
+    try:
+        for out in outputs:
+            lock = _lock_path(out)
+            if not lock.parent.is_dir():
+                continue  # the folder does not exist yet (or is no folder): nothing to race for
+            for _ in range(2):
+                try:
+                    fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+                except FileExistsError:
+                    try:
+                        holder = int(lock.read_text().strip() or 0)
+                    except (OSError, ValueError):
+                        holder = 0
+                    if holder and holder != os.getpid() and _running(holder):
+                        raise InputError(f"another refflow run (process {holder}) is writing {out}: wait for "
+                                         f"it to end, or choose another {option}") from None
+                    lock.unlink(missing_ok=True)  # left by a run that no longer exists
+                    continue
+                except OSError:
+                    break  # a folder we cannot write: the output check says so
+                with os.fdopen(fd, "w") as handle:
+                    handle.write(str(os.getpid()))
+                taken.append(lock)
+                break
+        yield [out for out in outputs if out.exists()]
+    finally:
+        for lock in taken:
+            lock.unlink(missing_ok=True)

@@ -849,3 +849,48 @@ def test_reference_average_of_frames_at_rest(tmp_path) -> None:
                      "--frames", span, "--raw-tracks", parts[-1], "--no-progress"]) == 0
     assert main(["merge", *parts, "--mm-per-px", "1", "--out", str(tmp_path / "merged.csv")]) == 0
     assert (tmp_path / "merged.csv").read_text() == (tmp_path / f"avg{rest}.csv").read_text()
+
+
+def _small_folder(tmp_path: Path) -> Path:
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"f{i}.png"), np.clip(np.rint(texture(0.3 * i)), 0, 255).astype(np.uint8))
+    return folder
+
+
+def test_jobs_beyond_the_cores_are_capped_and_said(tmp_path) -> None:
+    from flow.cli import available_cores
+
+    out = tmp_path / "o.csv"
+    assert main(["track", str(_small_folder(tmp_path)), "--fps", "30", "--rect", "40,30,80,60",
+                 "--method", "dis", "--jobs", "64", "--out", str(out), "--no-progress"]) == 0
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["jobs"] == available_cores()
+    assert any(note.startswith("--jobs 64 is more than the") for note in meta["notes"])
+
+
+def test_two_runs_never_write_one_output_at_once(tmp_path, capsys) -> None:
+    """A run whose --out another live run is writing is refused (its process named); a claim
+    left by a killed run is taken over; a re-run says it replaced the earlier output."""
+    folder = _small_folder(tmp_path)
+    out = tmp_path / "o.csv"
+    argv = ["track", str(folder), "--fps", "30", "--rect", "40,30,80,60", "--method", "dis",
+            "--out", str(out), "--no-progress"]
+    lock = tmp_path / ".o.csv.refflow-lock"
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        lock.write_text(str(other.pid))
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"another refflow run (process {other.pid}) is writing" in err and len(err.splitlines()) == 1
+        assert not out.exists() and lock.read_text() == str(other.pid)
+    finally:
+        other.kill()
+        other.wait()
+    assert main(argv) == 0  # the claim of a process that is gone is taken over
+    assert out.exists() and not lock.exists()
+    assert "replaced" not in capsys.readouterr().err
+    assert main(argv) == 0
+    assert f"replaced the earlier {out}" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "o.csv", "o.json"]

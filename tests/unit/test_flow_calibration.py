@@ -262,3 +262,19 @@ def test_load_calibration_hands_on_clean_values(tmp_path) -> None:
     path.write_text(json.dumps(without))
     assert "image_size" not in load_calibration(path)
     Undistorter(load_calibration(path), Roi(0, 0, 96, 64), (96, 64))  # OpenCV takes what it hands on
+
+
+def test_identical_board_views_are_refused_not_written(tmp_path, view_images) -> None:
+    """Four views of a board that did not move cannot calibrate a lens (RMS of millions of px)."""
+    from flow.cli import main
+
+    folder = tmp_path / "same"
+    folder.mkdir()
+    for i in range(4):
+        cv2.imwrite(str(folder / f"view{i}.png"), view_images[0])
+    out = tmp_path / "calib.json"
+    with pytest.raises(InputError, match="the board views are .nearly. the same: 1 of the 4 views differ"):
+        calibrate(folder, board=BOARD, square_mm=SQUARE_MM)
+    assert main(["calibrate", str(folder), "--board", f"{BOARD[0]}x{BOARD[1]}", "--square-mm",
+                 str(SQUARE_MM), "--out", str(out)]) == 2
+    assert not out.exists()
