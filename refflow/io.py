@@ -127,13 +127,22 @@ def versions() -> dict[str, str]:
     return found
 
 
+# Subpackages no workflow stage runs: editing them must not re-run the workbench
+# (``flow.gui``, the browser page, runs the tool but is no part of it).
+NOT_RUN_BY_THE_WORKFLOW = {"flow": ("gui",)}
+
+
 def source_digest(root: str | Path, package: str) -> str:
     """Short hash of the Python sources of ``package`` under ``root`` and of ``refflow`` (the
-    plumbing every stage shares): file names and bytes, in sorted order."""
+    plumbing every stage shares): file names and bytes, in sorted order (the subpackages of
+    :data:`NOT_RUN_BY_THE_WORKFLOW` left out)."""
     root = Path(root)
     digest = hashlib.sha256()
     for name in (package, "refflow"):
+        skipped = NOT_RUN_BY_THE_WORKFLOW.get(name, ())
         for path in sorted((root / name).rglob("*.py")):
+            if path.relative_to(root / name).parts[0] in skipped:
+                continue
             digest.update(path.relative_to(root).as_posix().encode())
             digest.update(path.read_bytes())
     return digest.hexdigest()[:16]

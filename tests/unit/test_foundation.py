@@ -133,4 +133,8 @@ def test_source_digest_moves_with_the_code_it_names_only(tmp_path):
     (tmp_path / "refflow" / "a.py").write_text("x = 4\n")  # the shared plumbing
     assert source_digest(tmp_path, "flow") != changed
     (tmp_path / "flow" / "sub" / "b.py").rename(tmp_path / "flow" / "b.py")  # a file moved
-    assert source_digest(tmp_path, "flow") != changed
+    moved = source_digest(tmp_path, "flow")
+    assert moved != changed
+    (tmp_path / "flow" / "gui").mkdir()  # the browser page: no workflow stage runs it
+    (tmp_path / "flow" / "gui" / "server.py").write_text("z = 5\n")
+    assert source_digest(tmp_path, "flow") == moved
