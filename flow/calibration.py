@@ -17,7 +17,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.io import FrameSource, InputError, Roi, as_uint8, json_number, load_json, shown
+from flow.io import FrameSource, InputError, Roi, as_uint8
+from flow.jsonfiles import json_number, load_json, shown
 
 
 def board_points(cols: int, rows: int, square_mm: float) -> np.ndarray:

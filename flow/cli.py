@@ -31,7 +31,8 @@ from flow.camfiles import companion_files
 from flow.export import add_parser as add_export_parser
 from flow.gui import add_parser as add_gui_parser
 from flow.gui.project import PROJECT_HELP, expand_project_argv
-from flow.io import FrameSource, InputError, Roi, json_number, load_json, quiet_decoder_logs, shown
+from flow.io import FrameSource, InputError, Roi, quiet_decoder_logs
+from flow.jsonfiles import json_number, load_json, shown
 from flow.modal import add_parser as add_modal_parser
 from flow.outputs import check_outputs, claimed
 from refflow.io import atomic_paths, json_text, versions, write_json

@@ -7,7 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from flow.io import DISPLAY_ROTATIONS, InputError, Roi, read_image
+from flow.imagefiles import read_image
+from flow.io import DISPLAY_ROTATIONS, InputError, Roi
 
 
 def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: str = "mask",

@@ -28,7 +28,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from flow.io import InputError, load_json
+from flow.io import InputError
+from flow.jsonfiles import load_json
 
 FORMAT = "refflow-project/1"
 

@@ -256,7 +256,7 @@ def test_pillow_says_nothing_while_the_folder_is_scanned(tmp_path, caplog) -> No
 def test_read_image_holds_decoder_noise_back_for_the_message(tmp_path, capfd) -> None:
     """libpng prints its errors on file descriptor 2 itself: they become the complaint that goes
     into the one-line message (a mask, the first image of a folder), and nothing reaches stderr."""
-    from flow.io import read_image
+    from flow.imagefiles import read_image
 
     good = tmp_path / "good.png"
     cv2.imwrite(str(good), np.full((6, 8), 90, np.uint8))
