@@ -199,14 +199,17 @@ def test_registry_and_parameters():
 def test_motorcycle_large_displacement_within_reach():
     """Middlebury 2014 "Motorcycle" (7-60 px disparities) with the default parameters: the
     matching's reach scales with the image, so the motion is found (EPE was 18 px with a fixed
-    32 px radius). The flow from the right image to the left is (+disparity, 0)."""
+    32 px radius). The disparity is the left image's (left pixel x shows right pixel x - d:
+    checked photometrically, |R(x - d) - L(x)| is 11 grey levels against 17 for the other
+    reading), so the flow from the left image to the right is (-disparity, 0); occluded
+    pixels count."""
     from skimage import data  # a test dependency (pyproject: [test])
 
     left, right, disparity = data.stereo_motorcycle()
-    reference = cv2.cvtColor(right, cv2.COLOR_RGB2GRAY)
-    current = cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
+    reference = cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
+    current = cv2.cvtColor(right, cv2.COLOR_RGB2GRAY)
     flow = deepflow_module.DeepFlow().calc(reference, current)
     known = np.isfinite(disparity)
-    epe = float(np.hypot(flow[..., 0] - np.where(known, disparity, 0.0), flow[..., 1])[known].mean())
+    epe = float(np.hypot(flow[..., 0] + np.where(known, disparity, 0.0), flow[..., 1])[known].mean())
     print(f"Motorcycle mean EPE {epe:.2f} px")
-    assert epe < 5.0
+    assert epe <= 3.0
