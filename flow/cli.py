@@ -119,11 +119,12 @@ def _undistorter(args: argparse.Namespace, source: FrameSource) -> tuple[Any, di
 
 
 def _mask_for(args: argparse.Namespace, source: FrameSource, undistort: Any) -> np.ndarray:
-    """The POI mask in the pixels the frames are measured in.
+    """The POI mask in the pixels the frames are measured in, as int32 region labels (0: no POI).
 
     Masks, rectangles and polygons are drawn on the raw video frames (what any
     viewer shows); with a calibration they are carried into the undistorted
-    frames, where the flow is computed.
+    frames, where the flow is computed. Regions: a labelled mask PNG (grey values
+    1..N), or several --mask files (one region each, or their labels in turn).
     """
     from flow import poi
 
@@ -131,20 +132,44 @@ def _mask_for(args: argparse.Namespace, source: FrameSource, undistort: Any) -> 
     if len(given) != 1:
         raise InputError("pass exactly one of --mask MASK.png, --rect X,Y,W,H or --polygon X1,Y1,...")
     if args.mask:
-        mask = poi.load_mask(args.mask, frame_size=source.size, roi=source.roi,
-                             rotation_deg=source.rotation_deg, notes=source.notes)
+        labels = np.zeros((source.roi.height, source.roi.width), np.int32)
+        for path in args.mask:
+            found = poi.load_mask(path, frame_size=source.size, roi=source.roi,
+                                  rotation_deg=source.rotation_deg, notes=source.notes, labels=True)
+            both = int(((labels > 0) & (found > 0)).sum())
+            if both:
+                raise InputError(f"mask {path!r} overlaps the masks before it in {both} pixels: "
+                                 "a pixel belongs to one region; draw the regions apart")
+            labels = np.where(found > 0, found + labels.max(), labels).astype(np.int32)
     elif args.rect:
-        mask = poi.rect_mask(args.rect, roi=source.roi)
+        labels = poi.rect_mask(args.rect, roi=source.roi).astype(np.int32)
     else:
-        mask = poi.polygon_mask(args.polygon, roi=source.roi)
-    return undistort.map_mask(mask) if undistort is not None else mask
+        labels = poi.polygon_mask(args.polygon, roi=source.roi).astype(np.int32)
+    if undistort is None:
+        return labels
+    moved = np.zeros(labels.shape, np.int32)
+    for label in np.unique(labels[labels > 0]):
+        moved[undistort.map_mask(labels == label)] = label
+    return moved
+
+
+def _regions(labels: np.ndarray, poi_xy: np.ndarray, grid_step: int) -> list[int]:
+    """The labels of the regions measured; refuses a region the POI grid leaves empty."""
+    present = [int(v) for v in np.unique(labels[labels > 0])]
+    at_pois = set(np.unique(labels[poi_xy[:, 1], poi_xy[:, 0]]).tolist())
+    empty = [label for label in present if label not in at_pois]
+    if empty:
+        raise InputError(f"region(s) {', '.join(map(str, empty))} of the mask hold no POI inside the ROI with "
+                         f"--grid-step {grid_step}: draw them larger, lower --grid-step or widen --roi")
+    return present
 
 
 def _mask_cut_by_roi(args: argparse.Namespace, source: FrameSource, notes: list[str]) -> int:
     """Pixels of a full-frame --mask that --roi leaves out; warns (and notes) when any."""
     from flow import poi
 
-    outside = poi.pixels_outside_roi(args.mask, frame_size=source.size, roi=source.roi) if args.mask else 0
+    outside = sum(poi.pixels_outside_roi(path, frame_size=source.size, roi=source.roi)
+                  for path in args.mask or [])
     if outside:
         message = (f"--roi {source.roi.as_text()} leaves {outside} of the mask's pixels out: only the mask "
                    "inside the ROI is measured (widen --roi to measure all of it)")
@@ -335,9 +360,10 @@ def _input_paths(args: argparse.Namespace) -> list[tuple[str, Path]]:
     """``(option, path)`` of every file the run reads (outputs must not be one of them)."""
     found: list[tuple[str, Path]] = []
     for option in ("input", "mask", "calibration", "scale_file", "background_mask", "video_origin"):
-        value = getattr(args, option, None)
-        if isinstance(value, str) and value and Path(value).exists():
-            found.append(("the video" if option == "input" else "--" + option.replace("_", "-"), Path(value)))
+        values = getattr(args, option, None)
+        for value in values if isinstance(values, list) else [values]:
+            if isinstance(value, str) and value and Path(value).exists():
+                found.append(("the video" if option == "input" else "--" + option.replace("_", "-"), Path(value)))
     found += [("a part", Path(part)) for part in getattr(args, "parts", None) or []]
     if isinstance(getattr(args, "input", None), str):  # a camera header's frames file (.mraw)
         found += [("the recording's frames", path) for path in companion_files(args.input)]
@@ -345,52 +371,34 @@ def _input_paths(args: argparse.Namespace) -> list[tuple[str, Path]]:
 
 
 def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], notes: list[str],
-                   mm_per_px: float, scale_source: str, started: float) -> Any:
-    """Filter, average and write the run's outputs as one all-or-nothing set.
+                   mm_per_px: float, scale_source: str, started: float) -> list[tuple[int, Any]]:
+    """Filter, average and write the run's outputs as one all-or-nothing set; returns each
+    region's ``(label, Measurement)`` (none without --out).
 
     Every file is written to a temporary name; only when all are complete are they
-    renamed (the CSV last), so a failure or Ctrl-C leaves none of them.
+    renamed (the CSV last), so a failure or Ctrl-C leaves none of them. A run of several
+    regions filters and averages each on its own and writes one row per frame and region.
     """
     from flow import track
 
     raw = getattr(args, "raw_tracks", None)
     sparse = run["method_kind"] == "sparse"
-    result = None
+    multi = tracks.region is not None
+    results: list[tuple[int, Any]] = []
     sidecar: dict[str, Any] = {}
+    columns = list(CSV_COLUMNS)
+    if multi:
+        columns.insert(columns.index("time_s") + 1, "region")
     if args.out:
         filter_mode = args.filter or ("none" if sparse else "paper")
-        result = track.measure(tracks, filter_enabled=filter_mode != "none",
-                               average="median" if filter_mode == "median" else "mean",
-                               threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
-                               # KLT mixes background and structure features by design (the paper's
-                               # baseline): their disagreement is no sign of a blocked view
-                               check_coherence=not sparse)
-        n_valid = int(result.valid.sum())
-        sidecar = {
-            **{k: v for k, v in run.items() if k not in ("identity", "timings")},
-            "scale": {"mm_per_px": _finite_or_none(mm_per_px), "source": scale_source},
-            "filter": {"mode": filter_mode, "threshold_ratio": args.threshold_ratio,
-                       "threshold_px": result.filtered.threshold_px, "mcr_threshold": args.mcr_threshold},
-            "quality": {"frames_valid": n_valid, "frames_invalid": int(len(result.valid) - n_valid),
-                        "residual_threshold": _finite_or_none(result.residual_threshold),
-                        "consistency_band_px": _finite_or_none(result.consistency_band_px)},
-            "units": {"time_s": "s", "dx_px": "px, + = image right", "dy_px": "px, + = image down",
-                      "dx_mm": "mm", "dy_mm": "mm", "residual": "grey levels (0-255)",
-                      "sigma_dx_px": "px, standard uncertainty of dx_px (NaN on invalid frames)",
-                      "sigma_dy_px": "px, standard uncertainty of dy_px",
-                      "sigma_px": "px, standard uncertainty of the displacement vector, "
-                                  "sqrt(sigma_dx_px^2 + sigma_dy_px^2)",
-                      "flow_spread_px": "px (1.4826 MAD over kept POIs)",
-                      "poi_kept_frac": "fraction of kept POIs measured and consistent with the frame's median",
-                      "camera_dx_px": "px, the camera's image motion at the POIs (removed from dx_px); "
-                                      "NaN without --background-mask"},
-            "columns": list(CSV_COLUMNS),
-            "notes": notes + result.filtered.notes,
-            "versions": versions(),
-            "timings": {**run.get("timings", {}), "total_s": time.perf_counter() - started},
-        }
-        sidecar["poi"] = {**run["poi"], "kept_after_filter": int(result.filtered.kept.sum()),
-                          "kept_after_eq10": int(result.filtered.kept_threshold.sum())}
+        results = [(label, track.measure(tracks.select(label), filter_enabled=filter_mode != "none",
+                                         average="median" if filter_mode == "median" else "mean",
+                                         threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
+                                         # KLT mixes background and structure features by design (the
+                                         # paper's baseline): their disagreement is no sign of a blocked view
+                                         check_coherence=not sparse))
+                   for label in tracks.labels()]
+        sidecar = _sidecar(args, run, notes, results, mm_per_px, scale_source, filter_mode, columns, started)
     sidecar_text = json_text(sidecar) if args.out else ""  # a bad value fails before any file exists
     with atomic_paths(*_output_names(args)) as temporaries:
         pending = list(temporaries)
@@ -398,19 +406,83 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
             track.save_raw_tracks(pending.pop(0), tracks, {**run, "notes": notes, "versions": versions()})
         if args.save_poi_tracks:
             roi = run["roi"]
+            kept = np.zeros(len(tracks.x_px), bool)
+            mcr = np.full(len(tracks.x_px), np.nan)
+            for label, result in results:
+                where = slice(None) if not multi else tracks.region == label
+                kept[where] = result.filtered.kept
+                mcr[where] = result.filtered.mcr
+            valid = np.column_stack([result.valid for _, result in results])
             track.write_npz(pending.pop(0), {
                 "frame": tracks.frame, "time_s": tracks.time_s, "dx_px": tracks.dx, "dy_px": tracks.dy,
-                "x_px": tracks.x_px + roi["x"], "y_px": tracks.y_px + roi["y"], "valid": result.valid,
-                "kept": result.filtered.kept, "mcr": result.filtered.mcr, "residual": tracks.residual,
-                "offset_dx_px": tracks.offset_dx, "offset_dy_px": tracks.offset_dy}, compress=True)
+                "x_px": tracks.x_px + roi["x"], "y_px": tracks.y_px + roi["y"],
+                "valid": valid if multi else valid[:, 0], "kept": kept, "mcr": mcr, "residual": tracks.residual,
+                "offset_dx_px": tracks.offset_dx, "offset_dy_px": tracks.offset_dy,
+                **({"region": tracks.region} if multi else {})}, compress=True)
         if args.out:
             pending.pop(0).write_text(sidecar_text)
             with pending.pop(0).open("w", newline="") as handle:
-                writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
+                writer = csv.DictWriter(handle, fieldnames=columns)
                 writer.writeheader()
-                for row in track.iter_rows(result, mm_per_px):
-                    writer.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in row.items()})
-    return result
+                per_region = [track.iter_rows(result, mm_per_px, label if multi else None)
+                              for label, result in results]
+                for rows in zip(*per_region, strict=True):  # frame by frame, regions in label order
+                    for row in rows:
+                        writer.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in row.items()})
+    return results
+
+
+def _sidecar(args: argparse.Namespace, run: dict[str, Any], notes: list[str], results: list[tuple[int, Any]],
+             mm_per_px: float, scale_source: str, filter_mode: str, columns: list[str],
+             started: float) -> dict[str, Any]:
+    """The measurement's sidecar: the run, the scale, the filter and the quality (per region
+    under ``regions`` for a run of several)."""
+    multi = len(results) > 1
+
+    def quality(result: Any) -> dict[str, Any]:
+        n_valid = int(result.valid.sum())
+        return {"frames_valid": n_valid, "frames_invalid": int(len(result.valid) - n_valid),
+                "residual_threshold": _finite_or_none(result.residual_threshold),
+                "consistency_band_px": _finite_or_none(result.consistency_band_px)}
+
+    first = results[0][1]
+    every = np.logical_and.reduce([result.valid for _, result in results])
+    sidecar: dict[str, Any] = {
+        **{k: v for k, v in run.items() if k not in ("identity", "timings")},
+        "scale": {"mm_per_px": _finite_or_none(mm_per_px), "source": scale_source},
+        "filter": {"mode": filter_mode, "threshold_ratio": args.threshold_ratio,
+                   "threshold_px": None if multi else first.filtered.threshold_px,
+                   "mcr_threshold": args.mcr_threshold},
+        "quality": ({"frames_valid": int(every.sum()), "frames_invalid": int(len(every) - every.sum()),
+                     "counted": "frames valid in every region (each region's own: see regions)"}
+                    if multi else quality(first)),
+        "units": {"time_s": "s", "dx_px": "px, + = image right", "dy_px": "px, + = image down",
+                  "dx_mm": "mm", "dy_mm": "mm", "residual": "grey levels (0-255)",
+                  "sigma_dx_px": "px, standard uncertainty of dx_px (NaN on invalid frames)",
+                  "sigma_dy_px": "px, standard uncertainty of dy_px",
+                  "sigma_px": "px, standard uncertainty of the displacement vector, "
+                              "sqrt(sigma_dx_px^2 + sigma_dy_px^2)",
+                  "flow_spread_px": "px (1.4826 MAD over kept POIs)",
+                  "poi_kept_frac": "fraction of kept POIs measured and consistent with the frame's median",
+                  "camera_dx_px": "px, the camera's image motion at the POIs (removed from dx_px); "
+                                  "NaN without --background-mask",
+                  **({"region": "label of the mask region the row measures (1..N)"} if multi else {})},
+        "columns": columns,
+        "notes": notes + [(f"region {label}: {note}" if multi else note)
+                          for label, result in results for note in result.filtered.notes],
+        "versions": versions(),
+        "timings": {**run.get("timings", {}), "total_s": time.perf_counter() - started},
+    }
+    sidecar["poi"] = {**run["poi"], "kept_after_filter": sum(int(r.filtered.kept.sum()) for _, r in results),
+                      "kept_after_eq10": sum(int(r.filtered.kept_threshold.sum()) for _, r in results)}
+    if multi:
+        described = {entry["label"]: entry for entry in run["poi"].get("regions", [])}
+        sidecar["regions"] = [
+            {**described.get(label, {"label": label}), "threshold_px": result.filtered.threshold_px,
+             "kept_after_filter": int(result.filtered.kept.sum()),
+             "kept_after_eq10": int(result.filtered.kept_threshold.sum()), **quality(result)}
+            for label, result in results]
+    return sidecar
 
 
 def _calibration_summary(args: argparse.Namespace, calibration: dict[str, Any] | None) -> dict[str, Any] | None:
@@ -477,9 +549,14 @@ def cmd_track(args: argparse.Namespace) -> int:
     undistort, calibration = _undistorter(args, source)
     calibration_info = _calibration_summary(args, calibration)
     mm_per_px, scale_source = _scale(args, calibration_info, tuple(source.size))
-    mask = _mask_for(args, source, undistort)
+    labels = _mask_for(args, source, undistort)
+    mask = labels > 0
     outside = _mask_cut_by_roi(args, source, notes)
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
+    regions = _regions(labels, poi_xy, args.grid_step)
+    if sparse and len(regions) > 1:
+        raise InputError(f"the mask has {len(regions)} regions but {name} picks its own features in one region: "
+                         "use a dense method (the default) or one region per run")
     background = _background_for(args, source, undistort, mask)
     # The per-POI store goes beside the output: a real disk, unlike a memory-backed /tmp.
     store_dir = Path(args.out or args.raw_tracks).resolve().parent
@@ -498,7 +575,7 @@ def cmd_track(args: argparse.Namespace) -> int:
                                        reference_average=args.reference_average, jobs=args.jobs,
                                        max_frames=args.max_frames, frames=frames, undistort=undistort,
                                        progress=not args.no_progress, store_dir=store_dir,
-                                       background=background, mask=mask)
+                                       background=background, mask=labels)
     notes.extend(source.notes)
     for warning in caught:
         notes.append(str(warning.message))
@@ -511,10 +588,18 @@ def cmd_track(args: argparse.Namespace) -> int:
     roi = source.roi
     # Where the points are (full-frame pixels; undistorted with a calibration): a measurement
     # point's position, e.g. for mode shapes (`refflow modal`).
-    centroid = [round(float(np.mean(tracks.x_px)) + roi.x, 3), round(float(np.mean(tracks.y_px)) + roi.y, 3)]
+    def centroid(x_px: np.ndarray, y_px: np.ndarray) -> list[float]:
+        return [round(float(np.mean(x_px)) + roi.x, 3), round(float(np.mean(y_px)) + roi.y, 3)]
+
     poi_info = {"count": int(len(tracks.x_px)), "source": "features" if sparse else "mask",
                 "mask_pixels": int(mask.sum()), "mask_pixels_outside_roi": outside, "grid_step": args.grid_step,
-                "centroid_px": centroid}
+                "centroid_px": centroid(tracks.x_px, tracks.y_px)}
+    if tracks.region is not None:
+        poi_info["regions"] = [
+            {"label": label, "count": int(np.sum(tracks.region == label)),
+             "mask_pixels": int(np.sum(labels == label)),
+             "centroid_px": centroid(tracks.x_px[tracks.region == label], tracks.y_px[tracks.region == label])}
+            for label in tracks.labels()]
     background_info = None if background is None else {
         "source": args.background_mask or f"rect {args.background_rect}", "points": int(len(background.xy)),
         "model": background.model, "requested_model": args.background_model}
@@ -539,12 +624,22 @@ def cmd_track(args: argparse.Namespace) -> int:
                      "frame_size": list(source.size), "header_frames": tracks.header_frames,
                      "calibration": calibration_info, "poi": poi_info, "background": background_info},
     }
-    result = _write_outputs(args, tracks, run, notes, mm_per_px, scale_source, started)
+    results = _write_outputs(args, tracks, run, notes, mm_per_px, scale_source, started)
     written = [p for p in (args.raw_tracks, args.out) if p]
-    kept = f" ({int(result.filtered.kept.sum())} kept), {int(result.valid.sum())} valid" if result else ""
-    print(f"refflow track: {name}: {len(tracks.frame)} frames, {len(tracks.x_px)} POIs{kept} -> "
+    print(f"refflow track: {name}: {len(tracks.frame)} frames, {len(tracks.x_px)} POIs{_counts(results)} -> "
           f"{', '.join(written)}", file=sys.stderr)
     return 0
+
+
+def _counts(results: list[tuple[int, Any]]) -> str:
+    """" (K kept), V valid" for the console; per region for a run of several."""
+    if not results:
+        return ""
+    if len(results) == 1:
+        result = results[0][1]
+        return f" ({int(result.filtered.kept.sum())} kept), {int(result.valid.sum())} valid"
+    return "".join(f"; region {label}: {int(r.filtered.kept.sum())} kept, {int(r.valid.sum())} valid"
+                   for label, r in results)
 
 
 def cmd_merge(args: argparse.Namespace) -> int:
@@ -572,10 +667,9 @@ def cmd_merge(args: argparse.Namespace) -> int:
            "timings": tracks.timings_s}
     run.pop("notes", None)
     run.pop("versions", None)
-    result = _write_outputs(args, tracks, run, notes, mm_per_px, scale_source, started)
-    print(f"refflow merge: {len(metas)} parts, {len(tracks.frame)} frames, {len(tracks.x_px)} POIs "
-          f"({int(result.filtered.kept.sum())} kept), {int(result.valid.sum())} valid -> {args.out}",
-          file=sys.stderr)
+    results = _write_outputs(args, tracks, run, notes, mm_per_px, scale_source, started)
+    print(f"refflow merge: {len(metas)} parts, {len(tracks.frame)} frames, {len(tracks.x_px)} POIs"
+          f"{_counts(results)} -> {args.out}", file=sys.stderr)
     return 0
 
 
@@ -600,36 +694,43 @@ def cmd_pois(args: argparse.Namespace) -> int:
 
     source = _open(args, need_time=False)
     undistort, _ = _undistorter(args, source)
-    mask = _mask_for(args, source, undistort)
+    labels = _mask_for(args, source, undistort)
+    mask = labels > 0
     _mask_cut_by_roi(args, source, [])
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
+    regions = _regions(labels, poi_xy, args.grid_step)
     reference = read_reference(source, args.reference_frame, undistort, args.reference_average)
     corners = KLT(detector=args.detector).detect(reference)
-    poi_figure(reference, poi_xy, corners, args.out)
+    poi_figure(reference, poi_xy, corners, args.out,
+               region=labels[poi_xy[:, 1], poi_xy[:, 0]] if len(regions) > 1 else None)
     cells = np.round(corners).astype(int).reshape(-1, 2)
     inside = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < mask.shape[1]) & (cells[:, 1] < mask.shape[0])
     on_mask = int(mask[cells[inside, 1], cells[inside, 0]].sum())
-    print(f"POIs: {len(poi_xy)}; {args.detector} corners in ROI: {len(corners)} ({on_mask} on the mask) "
+    in_regions = f" in {len(regions)} regions" if len(regions) > 1 else ""
+    print(f"POIs: {len(poi_xy)}{in_regions}; {args.detector} corners in ROI: {len(corners)} ({on_mask} on the mask) "
           f"-> {args.out}")
     return 0
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from flow.figures import read_measurement, spectrum_figure
+    from flow.figures import read_measurements, spectrum_figure
 
     labels = args.label or []
     if labels and len(labels) != len(args.csv):
         raise InputError(f"--label given {len(labels)} times for {len(args.csv)} CSV files: one per file or none")
     _positive("--min-hz", args.min_hz, "a frequency in Hz")
-    measured = [read_measurement(path) for path in args.csv]
+    # Every region of every CSV is a series of its own.
+    measured = [(i, path, data) for i, path in enumerate(args.csv) for data in read_measurements(path)]
     units = args.units
     if units == "auto":
-        units = "mm" if all(m["has_mm"] for m in measured) else "px"
+        units = "mm" if all(m["has_mm"] for _, _, m in measured) else "px"
     series = {}
-    for i, (path, data) in enumerate(zip(args.csv, measured, strict=True)):
+    for i, path, data in measured:
         if units == "mm" and not data["has_mm"]:
             raise InputError(f"{path} has no mm columns (tracked without a scale): use --units px")
         label = labels[i] if labels else data["label"]
+        if labels and data["region"] is not None:
+            label = f"{label} region {data['region']}"
         if label in series:
             label = f"{label} ({Path(path).stem})"
         series[label] = (data["time_s"], data[f"dx_{units}"], data[f"dy_{units}"])
@@ -652,7 +753,9 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--video-origin", metavar="X,Y", help="the video is a window of the calibrated sensor "
                    "whose top-left pixel is sensor pixel X,Y (a cropped recording); or a JSON file "
                    "holding 'video_origin_px': [X, Y]")
-    p.add_argument("--mask", help="binary mask PNG (full-frame or ROI size, raw video pixels), white = POI")
+    p.add_argument("--mask", action="append", help="mask PNG (full-frame or ROI size, raw video pixels): "
+                   "white = POI; or grey values 1..N = regions 1..N, each measured on its own in one run; "
+                   "repeat --mask for one region per file")
     p.add_argument("--rect", help="POIs in rectangle X,Y,W,H (raw full-frame pixels)")
     p.add_argument("--polygon", help="POIs in polygon X1,Y1,X2,Y2,... (raw full-frame pixels)")
     p.add_argument("--grid-step", type=int, default=1, help="keep every N-th mask pixel in x and y")

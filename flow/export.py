@@ -2,8 +2,8 @@
 
 Dataset 58 ("function at nodal DOF") is the time-history record that modal software
 (e.g. the MATLAB/LMS/ME'scope importers, pyuff, OpenModal) reads. Each direction of the
-measurement becomes one record: response node 1 (the POIs' mean), direction +X (``dx``) or
-+Y (``dy``), a time response (function type 1), abscissa time in s, ordinate displacement
+measurement becomes one record: response node 1 (the POIs' mean; node K for region K of a
+run of several regions), direction +X (``dx``) or +Y (``dy``), a time response (function type 1), abscissa time in s, ordinate displacement
 in m (SI, the CSV's mm / 1000; a dataset 164 before them says SI), or in px where the run
 had no scale (said in the record's ID lines: no physical unit). The samples are put
 on a uniform clock (the median frame interval; modal software expects even spacing) and
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from flow.errors import InputError
-from flow.figures import read_measurement, resample_uniform
+from flow.figures import read_measurements, resample_uniform
 from flow.outputs import check_outputs
 from refflow.io import atomic_path
 
@@ -32,27 +32,31 @@ _DIRECTIONS = {"dx": 1, "dy": 2}
 
 def uff58_records(csv_path: str | Path) -> list[dict[str, Any]]:
     """The records (pyuff's dictionaries) of a ``refflow track`` CSV: units (dataset 164),
-    then one time history (dataset 58) per direction."""
-    data = read_measurement(csv_path)
-    unit, column_unit, factor = ("m", "mm", 1e-3) if data["has_mm"] else ("px", "px", 1.0)
+    then one time history (dataset 58) per direction and region (node = region)."""
+    found = read_measurements(csv_path)
+    has_mm = all(data["has_mm"] for data in found)
+    unit, column_unit, factor = ("m", "mm", 1e-3) if has_mm else ("px", "px", 1.0)
     records: list[dict[str, Any]] = [{
         "type": 164, "units_code": 1, "units_description": "SI units", "temp_mode": 2,
         "length": 1.0, "force": 1.0, "temp": 1.0, "temp_offset": 273.15}]
-    for column, direction in _DIRECTIONS.items():
+    for data, (column, direction) in ((d, item) for d in found for item in _DIRECTIONS.items()):
+        node = 1 if data["region"] is None else int(data["region"])
+        mean_of = "the POIs' mean" if data["region"] is None else f"region {node}'s POIs' mean"
         values = data[f"{column}_{column_unit}"] * factor
         grid, series = resample_uniform(data["time_s"], values)
         if grid.size < 4:
-            raise InputError(f"{str(csv_path)!r}: fewer than 4 valid frames in {column}: nothing to export")
+            where = "" if data["region"] is None else f" of region {node}"
+            raise InputError(f"{str(csv_path)!r}: fewer than 4 valid frames in {column}{where}: nothing to export")
         bridged = int(np.count_nonzero(~np.isfinite(values)))
         step = float(grid[1] - grid[0])
         records.append({
             "type": 58, "binary": 0, "func_type": _TIME_RESPONSE,
-            "id1": f"refflow {data['label']}: {column} of the POIs' mean",
+            "id1": f"refflow {data['label']}: {column} of {mean_of}",
             "id2": f"source {Path(csv_path).name}",
             "id3": f"displacement in {unit}" + (" (CSV mm / 1000)" if unit == "m" else " (no scale: not SI)"),
             "id4": f"{bridged} invalid frames bridged linearly; uniform step {step:.9g} s",
             "id5": "NONE",
-            "rsp_node": 1, "rsp_dir": direction, "ref_node": 0, "ref_dir": 0,
+            "rsp_node": node, "rsp_dir": direction, "ref_node": 0, "ref_dir": 0,
             "rsp_ent_name": "refflow", "ref_ent_name": "NONE",
             "abscissa_spacing": 1, "abscissa_min": float(grid[0]), "abscissa_inc": step,
             "abscissa_spec_data_type": _TIME, "abscissa_axis_units_lab": "s",

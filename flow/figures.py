@@ -19,10 +19,20 @@ import numpy as np
 from flow.io import InputError, as_uint8
 from refflow.io import atomic_path
 
+# BGR colours of regions 1, 2, ... (a colour-blind-safe palette, Okabe-Ito), repeated beyond 8.
+REGION_COLOURS = ((0, 220, 0), (0, 159, 230), (233, 180, 86), (0, 94, 213), (66, 228, 240),
+                  (178, 114, 0), (167, 121, 204), (115, 158, 0))
+
+
+def region_colour(label: int) -> tuple[int, int, int]:
+    """BGR colour of region ``label`` (1-based) in the figures."""
+    return REGION_COLOURS[(int(label) - 1) % len(REGION_COLOURS)]
+
 
 def poi_figure(reference: np.ndarray, poi_xy: np.ndarray, corners_xy: np.ndarray,
-               path: str | Path, *, scale: int | None = None) -> None:
-    """Write a side-by-side PNG: POIs (left, green) and corners (right, red) on the reference ROI.
+               path: str | Path, *, scale: int | None = None, region: np.ndarray | None = None) -> None:
+    """Write a side-by-side PNG: POIs (left, green; each region in its own colour where
+    ``region`` gives the POIs' labels) and corners (right, red) on the reference ROI.
 
     ``scale`` enlarges small ROIs so single pixels stay visible (default: to ~600 px wide).
     """
@@ -33,12 +43,19 @@ def poi_figure(reference: np.ndarray, poi_xy: np.ndarray, corners_xy: np.ndarray
     base = cv2.resize(base, (width * scale, height * scale), interpolation=cv2.INTER_NEAREST)
     left, right = base.copy(), base.copy()
     radius = max(1, scale // 2)
-    for x, y in np.asarray(poi_xy).reshape(-1, 2):
-        cv2.circle(left, (int(x * scale + scale // 2), int(y * scale + scale // 2)), radius, (0, 220, 0), -1)
+    points = np.asarray(poi_xy).reshape(-1, 2)
+    labels = np.ones(len(points), int) if region is None else np.asarray(region, int)
+    for (x, y), label in zip(points, labels, strict=True):
+        cv2.circle(left, (int(x * scale + scale // 2), int(y * scale + scale // 2)), radius,
+                   region_colour(label), -1)
     for x, y in np.asarray(corners_xy).reshape(-1, 2):
         cv2.circle(right, (int(round(x * scale)), int(round(y * scale))), 3 * radius + 2, (0, 0, 255), 2)
     label = (cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 0), 2)
     cv2.putText(left, f"mask POIs: {len(poi_xy)}", (8, 22), label[0], label[1], label[2], label[3])
+    if region is not None and len(np.unique(labels)) > 1:
+        for row, value in enumerate(np.unique(labels)):
+            cv2.putText(left, f"region {value}", (8, 46 + 22 * row), label[0], label[1],
+                        region_colour(value), label[3])
     cv2.putText(right, f"corners (KLT): {len(corners_xy)}", (8, 22), label[0], label[1], label[2], label[3])
     gap = np.full((base.shape[0], 8, 3), 255, np.uint8)
     with atomic_path(path) as tmp:
@@ -46,11 +63,13 @@ def poi_figure(reference: np.ndarray, poi_xy: np.ndarray, corners_xy: np.ndarray
             raise OSError(f"cannot write {path}")
 
 
-def read_measurement(path: str | Path) -> dict[str, Any]:
-    """Columns of a ``refflow track`` CSV, invalid frames as NaN, and its method (from the sidecar).
+def read_measurements(path: str | Path) -> list[dict[str, Any]]:
+    """Columns of a ``refflow track`` CSV, invalid frames as NaN, and its method (from the
+    sidecar): one dict per region (one for a run of one region), in label order.
 
-    Returns ``time_s``, ``dx_px``, ``dy_px``, ``dx_mm``, ``dy_mm`` arrays,
-    ``has_mm`` (a scale was given) and ``label``.
+    Each holds ``time_s``, ``dx_px``, ``dy_px``, ``dx_mm``, ``dy_mm`` arrays, ``has_mm`` (a
+    scale was given), ``label`` (the method; "method region K" in a run of several) and
+    ``region`` (the label K, None for a run of one region).
     """
     path = Path(path)
     if not path.is_file():
@@ -60,24 +79,48 @@ def read_measurement(path: str | Path) -> dict[str, Any]:
         missing = {"time_s", "dx_px", "dy_px", "valid"} - set(reader.fieldnames or [])
         if missing:
             raise InputError(f"{str(path)!r} is not a `refflow track` CSV (no {', '.join(sorted(missing))} column)")
+        labelled = "region" in (reader.fieldnames or [])
         rows = list(reader)
-    if len(rows) < 4:
-        raise InputError(f"{str(path)!r} has {len(rows)} frames: a spectrum needs at least 4")
-    data: dict[str, Any] = {}
-    valid = np.array([row["valid"] == "1" for row in rows])
-    for column in ("time_s", "dx_px", "dy_px", "dx_mm", "dy_mm"):
-        values = np.array([float(row.get(column) or "nan") for row in rows])
-        data[column] = values if column == "time_s" else np.where(valid, values, np.nan)
-    data["has_mm"] = bool(np.isfinite(data["dx_mm"]).any())
-    label = path.stem
+    groups: dict[int | None, list[dict[str, str]]] = {}
+    for row in rows:
+        try:
+            key = int(row["region"]) if labelled else None
+        except (TypeError, ValueError):
+            raise InputError(f"{str(path)!r}: region {row.get('region')!r} is not a label (1..N)") from None
+        groups.setdefault(key, []).append(row)
+    method = path.stem
     sidecar = path.with_suffix(".json")
     if sidecar.is_file():
         try:
-            label = json.loads(sidecar.read_text()).get("method", label)
-        except (OSError, ValueError):
+            method = json.loads(sidecar.read_text()).get("method", method)
+        except (OSError, ValueError, AttributeError):
             pass  # the label is cosmetic; the CSV itself was read
-    data["label"] = label
-    return data
+    out = []
+    for key in sorted(groups, key=lambda k: -1 if k is None else k):
+        part = groups[key]
+        if len(part) < 4:
+            where = "" if key is None else f" in region {key}"
+            raise InputError(f"{str(path)!r} has {len(part)} frames{where}: a spectrum needs at least 4")
+        data: dict[str, Any] = {}
+        valid = np.array([row["valid"] == "1" for row in part])
+        for column in ("time_s", "dx_px", "dy_px", "dx_mm", "dy_mm"):
+            values = np.array([float(row.get(column) or "nan") for row in part])
+            data[column] = values if column == "time_s" else np.where(valid, values, np.nan)
+        data["has_mm"] = bool(np.isfinite(data["dx_mm"]).any())
+        data["label"] = method if key is None else f"{method} region {key}"
+        data["region"] = key
+        out.append(data)
+    if not out:
+        raise InputError(f"{str(path)!r} has 0 frames: a spectrum needs at least 4")
+    return out
+
+
+def read_measurement(path: str | Path) -> dict[str, Any]:
+    """:func:`read_measurements` of a CSV of one region (refused for several: name a region)."""
+    found = read_measurements(path)
+    if len(found) > 1:
+        raise InputError(f"{str(path)!r} holds {len(found)} regions: this command reads one measurement point")
+    return found[0]
 
 
 def resample_uniform(time_s: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from flow.errors import InputError
-from flow.figures import read_measurement, resample_uniform
+from flow.figures import read_measurements, resample_uniform
 from flow.outputs import check_outputs
 from refflow.io import atomic_paths, json_text, versions
 
@@ -87,11 +87,17 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
     check_outputs(outputs, [(what, path) for csv_path in paths for what, path in (
         (f"the CSV {csv_path}", csv_path), (f"{csv_path}'s sidecar", csv_path.with_suffix(".json")))],
         option="--out or --figures")
-    measured = [read_measurement(path) for path in paths]
-    _check_shared_times(paths, measured)
+    # Every region of every CSV is a measurement point.
+    found = [(path, data) for path in paths for data in read_measurements(path)]
+    point_paths = [path for path, _ in found]
+    measured = [data for _, data in found]
+    regions = [data["region"] for data in measured]
+    where = [str(path) if region is None else f"{path} region {region}"
+             for path, region in zip(point_paths, regions, strict=True)]
+    _check_shared_times(where, measured)
     units = "mm" if all(m["has_mm"] for m in measured) else "px"
-    names = _point_names(paths)
-    record = _common_record(paths, measured, units, direction)
+    names = _point_names(point_paths, regions)
+    record = _common_record(where, measured, units, direction)
     rate_hz = record["rate_hz"]
     if band_hz is not None and band_hz[1] > 0.5 * rate_hz:
         raise InputError(f"--band {band_hz[0]:g},{band_hz[1]:g}: {band_hz[1]:g} Hz is above the Nyquist "
@@ -110,10 +116,12 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
                      f"{len(modes)} prominent peak(s) in {diagnostics['band_hz'][0]:g}-"
                      f"{diagnostics['band_hz'][1]:g} Hz (see the stabilisation diagram)")
     points = []
-    for i, (path, name) in enumerate(zip(paths, names, strict=True)):
+    for i, (path, region, name) in enumerate(zip(point_paths, regions, names, strict=True)):
         point: dict[str, Any] = {"name": name, "csv": str(path), "direction_px": record["directions"][i],
                                  "frames_bridged": record["bridged"][i]}
-        position = _poi_centroid(path)
+        if region is not None:
+            point["region"] = region
+        position = _poi_centroid(path, region)
         if position is not None:
             point["position_px"] = position
         points.append(point)
@@ -162,7 +170,7 @@ def _check_options(paths: list[Path], n_modes: int, band_hz: tuple[float, float]
             raise InputError(f"{paths[i]} is given twice: each point's CSV once")
 
 
-def _check_shared_times(paths: list[Path], measured: list[dict[str, Any]]) -> None:
+def _check_shared_times(paths: list[str], measured: list[dict[str, Any]]) -> None:
     """The points must be the same frames: identical frame times, within a thousandth of a frame."""
     first = measured[0]["time_s"]
     steps = np.diff(first[np.isfinite(first)])
@@ -182,10 +190,14 @@ def _span(times: np.ndarray) -> str:
     return f"{times.size} frames, {finite[0]:.6g}-{finite[-1]:.6g} s"
 
 
-def _point_names(paths: list[Path]) -> list[str]:
-    """The CSVs' names without suffix; their folder too where two share a name."""
-    stems = [p.stem for p in paths]
-    return [f"{p.parent.name}/{p.stem}" if stems.count(p.stem) > 1 else p.stem for p in paths]
+def _point_names(paths: list[Path], regions: list[int | None]) -> list[str]:
+    """The CSVs' names without suffix (their folder too where two files share a name), and
+    the region's label for a CSV of several regions."""
+    files = list(dict.fromkeys(paths))
+    stems = [p.stem for p in files]
+    name_of = {p: f"{p.parent.name}/{p.stem}" if stems.count(p.stem) > 1 else p.stem for p in files}
+    return [name_of[p] if region is None else f"{name_of[p]} region {region}"
+            for p, region in zip(paths, regions, strict=True)]
 
 
 def _direction(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
@@ -196,7 +208,7 @@ def _direction(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
     return vectors[:, -1]
 
 
-def _common_record(paths: list[Path], measured: list[dict[str, Any]], units: str, direction: str) -> dict[str, Any]:
+def _common_record(paths: list[str], measured: list[dict[str, Any]], units: str, direction: str) -> dict[str, Any]:
     """The points' displacements along their directions, shape (points, samples), on one uniform clock.
 
     The record spans the frames from the first to the last that every point measured
@@ -252,12 +264,16 @@ def _common_record(paths: list[Path], measured: list[dict[str, Any]], units: str
             "bridged": bridged, "trimmed": trimmed, "notes": notes}
 
 
-def _poi_centroid(csv_path: Path) -> list[float] | None:
-    """``poi.centroid_px`` [x, y] of the CSV's sidecar, where it is recorded (else None)."""
+def _poi_centroid(csv_path: Path, region: int | None = None) -> list[float] | None:
+    """``poi.centroid_px`` [x, y] of the CSV's sidecar (of the region's entry in
+    ``poi.regions``), where it is recorded (else None)."""
     sidecar = csv_path.with_suffix(".json")
     try:
-        centroid = json.loads(sidecar.read_text()).get("poi", {}).get("centroid_px")
-    except (OSError, ValueError, AttributeError):
+        poi = json.loads(sidecar.read_text()).get("poi", {})
+        if region is not None:
+            poi = next((r for r in poi.get("regions", []) if r.get("label") == region), {})
+        centroid = poi.get("centroid_px")
+    except (OSError, ValueError, AttributeError, TypeError):
         return None  # a position is extra information; the CSV itself was read
     if (isinstance(centroid, (list, tuple)) and len(centroid) == 2
             and all(isinstance(v, (int, float)) and math.isfinite(v) for v in centroid)):
@@ -409,10 +425,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "modal", help="natural frequencies, damping and mode shapes from several measured points (FDD + SSI)",
         description="Output-only modal identification of `refflow track` CSVs, one per measurement point "
-                    "(same video, same frames): frequencies, damping ratios and mode shapes to a JSON, "
+                    "or one run of several regions (same video, same frames): frequencies, damping ratios and mode shapes to a JSON, "
                     "with a stabilisation diagram and a mode-shape figure.")
-    p.add_argument("csv", nargs="+", help="`refflow track` CSVs, one per measurement point, sharing their "
-                   "frame times; the shapes list the points in this order")
+    p.add_argument("csv", nargs="+", help="`refflow track` CSVs sharing their frame times: one per measurement "
+                   "point, or CSVs of several regions (each region a point); the shapes list the points "
+                   "in this order")
     p.add_argument("--out", required=True, help="output JSON (frequencies, damping ratios, shapes, points)")
     p.add_argument("--figures", metavar="PREFIX", help="figures PREFIX_stabilisation.png and PREFIX_shapes.png "
                    "(default: the --out path without its suffix)")

@@ -11,10 +11,21 @@ from flow.imagefiles import read_image
 from flow.io import DISPLAY_ROTATIONS, InputError, Roi
 
 
+def mask_labels(image: np.ndarray) -> np.ndarray:
+    """Region labels (int32, 0 = no POI) of a mask image: an image whose non-zero grey values
+    are exactly 1, 2, ..., N (N < 128) is a labelled mask of N regions; any other image is a
+    binary mask, white (> 127) = POI, one region (label 1)."""
+    values = np.unique(image[image > 0])
+    if values.size and values[-1] < 128 and np.array_equal(values, np.arange(1, values.size + 1)):
+        return image.astype(np.int32)
+    return (image > 127).astype(np.int32)
+
+
 def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: str = "mask",
               instead: str = "--rect/--polygon", rotation_deg: int = 0,
-              notes: list[str] | None = None) -> np.ndarray:
-    """Read a mask PNG (full-frame or ROI size) and return it as an ROI-sized bool array.
+              notes: list[str] | None = None, labels: bool = False) -> np.ndarray:
+    """Read a mask PNG (full-frame or ROI size) and return it as an ROI-sized bool array
+    (``labels``: the int32 region labels of :func:`mask_labels`).
 
     ``what`` names the mask in messages, ``instead`` the options that can replace it.
     ``rotation_deg``: the video's display rotation (frames are measured as displayed); a
@@ -46,7 +57,7 @@ def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: 
         raise InputError(
             f"{what} is {width}x{height} but frames are {frame_size[0]}x{frame_size[1]} "
             f"(ROI {roi.width}x{roi.height}{rotated}): pass --roi or a full-size mask")
-    return image > 127
+    return mask_labels(image) if labels else image > 127
 
 
 def pixels_outside_roi(path: str | Path, *, frame_size: tuple[int, int], roi: Roi) -> int:
@@ -54,8 +65,8 @@ def pixels_outside_roi(path: str | Path, *, frame_size: tuple[int, int], roi: Ro
     image, _ = read_image(path, cv2.IMREAD_GRAYSCALE)
     if image is None or (image.shape[1], image.shape[0]) != tuple(frame_size):
         return 0
-    inside = image[roi.y:roi.y + roi.height, roi.x:roi.x + roi.width] > 127
-    return int((image > 127).sum() - inside.sum())
+    labels = mask_labels(image) > 0
+    return int(labels.sum() - labels[roi.y:roi.y + roi.height, roi.x:roi.x + roi.width].sum())
 
 
 def rect_mask(text: str, *, roi: Roi) -> np.ndarray:

@@ -71,8 +71,9 @@ class DenseMethod(Method):
 
     A method may also use what the user says about the structure: the driver calls
     :meth:`bind` once with the reference frame and the POI mask before the frames, and
-    after each :meth:`calc` reads :attr:`last_sigma_px`, the method's own standard
-    uncertainty of the mean displacement over the POIs (None: the driver estimates one).
+    after each :meth:`calc` reads :attr:`last_sigmas_px`, the method's own standard
+    uncertainty ``(sigma_x, sigma_y)`` of the mean displacement over each region's POIs (one
+    entry per label of the mask, ascending; None, or a None entry: the driver estimates one).
 
     Parameters
     ----------
@@ -84,7 +85,7 @@ class DenseMethod(Method):
     """
 
     kind = "dense"
-    last_sigma_px: tuple[float, float] | None = None
+    last_sigmas_px: list[tuple[float, float] | None] | None = None
 
     def __init__(self, *, crop: bool = True, **params: Any) -> None:
         if not isinstance(crop, bool):
@@ -95,10 +96,11 @@ class DenseMethod(Method):
         self._bound_shape: tuple[int, ...] | None = None
 
     def bind(self, reference: np.ndarray, mask: np.ndarray, *, read: np.ndarray | None = None) -> None:
-        """Prepare for frames compared with ``reference``; ``mask`` (bool, same shape) marks
-        the POIs, the structure's pixels; ``read`` (bool, same shape, optional) the other
-        pixels whose flow the driver reads (static background points). The base class cuts
-        out the window it solves (see ``crop``); subclasses that use more call it first."""
+        """Prepare for frames compared with ``reference``; ``mask`` (same shape) marks the
+        POIs, the structure's pixels (bool; or int labels 1..N of regions, 0 elsewhere);
+        ``read`` (bool, same shape, optional) the other pixels whose flow the driver reads
+        (static background points). The base class cuts out the window it solves (see
+        ``crop``); subclasses that use more call it first."""
         self._window = None
         self._bound_shape = reference.shape
         mask = np.asarray(mask, bool)

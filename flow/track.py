@@ -25,7 +25,7 @@ import zipfile
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -94,6 +94,30 @@ class DiskMatrix:
         handle = getattr(self, "_handle", None)
         if handle is not None:
             handle.close()
+
+
+class ColumnView:
+    """A column subset of a ``(frames, points)`` matrix (array or :class:`DiskMatrix`), indexed
+    by rows like the matrix: what one region's POIs read of a run's tracks."""
+
+    dtype = np.dtype(np.float32)
+    ndim = 2
+
+    def __init__(self, matrix: Any, columns: np.ndarray) -> None:
+        self._matrix = matrix
+        self._columns = np.asarray(columns, np.intp)
+        self.shape = (int(matrix.shape[0]), int(self._columns.size))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        """Rows ``m[i]`` or ``m[a:b]`` of the matrix, this view's columns only."""
+        return np.asarray(self._matrix[key])[..., self._columns]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        whole = np.asarray(self._matrix[0:self.shape[0]])[:, self._columns]
+        return whole if dtype is None else whole.astype(dtype)
 
 
 class PoiStore:
@@ -181,12 +205,35 @@ class Tracks:
     # estimated from the kept POIs' spread when measured (sparse methods).
     sigma_dx: np.ndarray | None = None  # (F,) px
     sigma_dy: np.ndarray | None = None
+    # Regions (a labelled mask): each POI's label; None for one region. With regions, the
+    # per-frame values above (residual, camera, sigma) are (F, R), one column per label in
+    # ascending order, each over (or at the centroid of) that region's POIs.
+    region: np.ndarray | None = None  # (P,) int
 
-    @property
-    def reference_row(self) -> int | None:
-        """Row of the reference frame, None if it lies outside the measured frames."""
-        rows = np.flatnonzero(self.frame == self.reference_frame)
-        return int(rows[0]) if rows.size else None
+    def labels(self) -> list[int]:
+        """The regions' labels, ascending ([1] for a run of one region)."""
+        return [1] if self.region is None else [int(v) for v in np.unique(self.region)]
+
+    def select(self, label: int) -> Tracks:
+        """The tracks of one region's POIs, as a run of that region alone would give them."""
+        if self.region is None:
+            if label != 1:
+                raise ValueError(f"no region {label}: the run has one region (1)")
+            return self
+        labels = self.labels()
+        if label not in labels:
+            raise ValueError(f"no region {label}: the run's regions are {labels}")
+        k = labels.index(label)
+        columns = np.flatnonzero(self.region == label)
+
+        def column(values: np.ndarray | None) -> np.ndarray | None:
+            return None if values is None else np.asarray(values)[:, k]
+
+        return replace(self, dx=ColumnView(self.dx, columns), dy=ColumnView(self.dy, columns),
+                       residual=column(self.residual), x_px=self.x_px[columns], y_px=self.y_px[columns],
+                       offset_dx=self.offset_dx[columns], offset_dy=self.offset_dy[columns],
+                       camera_dx=column(self.camera_dx), camera_dy=column(self.camera_dy),
+                       sigma_dx=column(self.sigma_dx), sigma_dy=column(self.sigma_dy), region=None)
 
 
 @dataclass
@@ -395,8 +442,11 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         Static points: the camera motion fitted to their flow is subtracted from
         the POIs' (``Tracks.camera_dx`` records it; the residual stays that of the
         image motion itself).
-    mask : ndarray (H, W) bool, optional
-        The POI mask (default: the POIs' pixels), given to each method's ``bind``.
+    mask : ndarray (H, W) bool or int, optional
+        The POI mask (default: the POIs' pixels), given to each method's ``bind``. An int
+        mask of labels 1..N (0: no POI) with two or more labels at the POIs measures each
+        label's POIs as a region of its own (residual, uncertainty and camera motion per
+        region; ``Tracks.region``), all from one flow computation per frame.
     """
     if jobs < 1:
         raise InputError(f"--jobs {jobs} must be >= 1")
@@ -410,6 +460,12 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     if mask is None:
         mask = np.zeros(reference.shape, bool)
         mask[rows_, columns] = True
+    region_of = np.asarray(mask)[rows_, columns].astype(np.int64)
+    labels = np.unique(region_of)
+    if labels.size > 1 and labels[0] <= 0:
+        raise ValueError(f"{int(np.sum(region_of <= 0))} POIs lie outside the labelled mask's regions")
+    groups = [np.flatnonzero(region_of == label) for label in labels] if labels.size > 1 \
+        else [np.arange(len(poi_xy))]
     read = None
     if background is not None:
         read = np.zeros(reference.shape, bool)
@@ -420,7 +476,7 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         if hasattr(method, "bind"):
             method.bind(reference, mask, read=read)
         idle.put(method)
-    lk = _LucasKanadeSigma(reference, poi_xy)
+    lks = [_LucasKanadeSigma(reference, poi_xy[group]) for group in groups]
     # A method that solves frames from one another (``chain_length`` > 1) gets the frames of
     # one chain, ``(index - reference_frame) // chain_length``, in order on one instance, from
     # a restart: the chains are fixed by the frame index alone, so any --frames part or --jobs
@@ -429,30 +485,37 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     chain = max(1, int(getattr(methods[0], "chain_length", 0) or 0))
 
     poi_points = poi_xy.astype(np.float64)
-    centroid = poi_points.mean(axis=0, keepdims=True)
+    centroids = np.array([poi_points[group].mean(axis=0) for group in groups])
 
     def compensate(flow: np.ndarray, dx: np.ndarray, dy: np.ndarray):
-        """POI flow minus the camera's motion, and that motion at the POIs' centroid."""
+        """POI flow minus the camera's motion, and that motion at each region's centroid."""
         if background is None:
-            return dx, dy, (np.nan, np.nan)
+            return dx, dy, np.full((len(groups), 2), np.nan)
         bx = flow[background.rows, background.columns, 0]
         by = flow[background.rows, background.columns, 1]
-        mx, my = background.motion_at(bx, by, np.vstack([poi_points, centroid]))
-        return ((dx - mx[:-1]).astype(np.float32), (dy - my[:-1]).astype(np.float32),
-                (float(mx[-1]), float(my[-1])))
+        mx, my = background.motion_at(bx, by, np.vstack([poi_points, centroids]))
+        n = len(poi_points)
+        return ((dx - mx[:n]).astype(np.float32), (dy - my[:n]).astype(np.float32),
+                np.column_stack([mx[n:], my[n:]]).astype(np.float64))
 
-    def measure_frame(method: Any, current: np.ndarray) -> tuple[np.ndarray, np.ndarray, float,
-                                                                 tuple[float, float], tuple[float, float]]:
+    def measure_frame(method: Any, current: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                 np.ndarray, np.ndarray]:
+        """The POIs' displacement, and per region the mean photometric residual, the camera's
+        motion and the standard uncertainty of the mean displacement."""
         flow = method.calc(reference, current)
         dx = flow[rows_, columns, 0].astype(np.float32)
         dy = flow[rows_, columns, 1].astype(np.float32)
-        warped = _sample(current, xs + dx, ys + dy)
-        diff = np.abs(warped - ref_values)
-        finite = diff[np.isfinite(diff)]
-        residual = float(finite.mean()) if finite.size else float("nan")
-        sigma = getattr(method, "last_sigma_px", None)
-        if sigma is None:
-            sigma = lk.sigma(warped - ref_values)
+        error = _sample(current, xs + dx, ys + dy) - ref_values
+        residual = np.full(len(groups), np.nan)
+        sigma = np.full((len(groups), 2), np.nan)
+        own = getattr(method, "last_sigmas_px", None)
+        for k, group in enumerate(groups):
+            diff = np.abs(error[group])
+            finite = diff[np.isfinite(diff)]
+            if finite.size:
+                residual[k] = float(finite.mean())
+            given = own[k] if own is not None and k < len(own) else None
+            sigma[k] = given if given is not None else lks[k].sigma(error[group])
         cdx, cdy, camera = compensate(flow, dx, dy)
         return cdx, cdy, residual, camera, sigma
 
@@ -547,20 +610,24 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     if offset is None:
         row = int(np.flatnonzero(frame_index == reference_frame)[0])
         offset = (reference_offset(dx, row), reference_offset(dy, row))
-    camera = np.asarray(cameras, np.float64).reshape(-1, 2) if background is not None else None
-    sigma = np.asarray(sigmas, np.float64).reshape(-1, 2)
+    # (F, R) per-frame values of R regions; (F,) for one region.
+    per_region = (lambda values: np.asarray(values, np.float64)) if len(groups) > 1 \
+        else (lambda values: np.asarray(values, np.float64)[:, 0])
+    camera = np.asarray(cameras, np.float64) if background is not None else None
+    sigma = np.asarray(sigmas, np.float64)
     timings = _timings(t0, t1, t2, len(frame_list))
     # Where the time went, for a method that tracks frames from their predecessor: frames it
     # measured in full and frames it tracked (warm-up frames of a part included).
     for key in CHAIN_COUNTS:
         if hasattr(methods[0], key):
             timings[key] = float(sum(getattr(m, key) for m in methods))
-    return Tracks(frame_index, np.asarray(times), dx, dy, np.asarray(residuals), xs, ys,
+    return Tracks(frame_index, np.asarray(times), dx, dy, per_region(residuals), xs, ys,
                   reference_frame, offset[0], offset[1], timings,
                   source.truncated, source.header_frames, image_digest(reference),
-                  camera_dx=None if camera is None else camera[:, 0],
-                  camera_dy=None if camera is None else camera[:, 1],
-                  sigma_dx=sigma[:, 0], sigma_dy=sigma[:, 1])
+                  camera_dx=None if camera is None else per_region(camera[..., 0]),
+                  camera_dy=None if camera is None else per_region(camera[..., 1]),
+                  sigma_dx=per_region(sigma[..., 0]), sigma_dy=per_region(sigma[..., 1]),
+                  region=region_of if len(groups) > 1 else None)
 
 
 def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
@@ -767,16 +834,18 @@ def _standard_error(block: np.ndarray) -> np.ndarray:
         return np.where(n >= 2, 1.4826 * mad / np.sqrt(np.maximum(n, 1)), np.nan)
 
 
-def iter_rows(result: Measurement, mm_per_px: float) -> Iterable[dict[str, Any]]:
-    """CSV rows; invalid frames report NaN displacement instead of a fake motion."""
+def iter_rows(result: Measurement, mm_per_px: float, region: int | None = None) -> Iterable[dict[str, Any]]:
+    """CSV rows; invalid frames report NaN displacement instead of a fake motion. ``region``:
+    the label written in a ``region`` column (a run of several regions)."""
     tr = result.tracks
+    labelled = {} if region is None else {"region": int(region)}
     for i in range(len(tr.frame)):
         ok = bool(result.valid[i])
         dx = float(result.filtered.dx[i]) if ok else float("nan")
         dy = float(result.filtered.dy[i]) if ok else float("nan")
         sx = float(result.sigma_dx[i]) if ok and result.sigma_dx is not None else float("nan")
         sy = float(result.sigma_dy[i]) if ok and result.sigma_dy is not None else float("nan")
-        yield {"frame": int(tr.frame[i]), "time_s": float(tr.time_s[i]), "dx_px": dx, "dy_px": dy,
+        yield {"frame": int(tr.frame[i]), "time_s": float(tr.time_s[i]), **labelled, "dx_px": dx, "dy_px": dy,
                "dx_mm": dx * mm_per_px, "dy_mm": dy * mm_per_px, "valid": int(ok),
                "sigma_dx_px": sx, "sigma_dy_px": sy, "sigma_px": float(np.hypot(sx, sy)),
                "poi_kept_frac": float(result.poi_kept_frac[i]), "residual": float(tr.residual[i]),
@@ -799,6 +868,8 @@ def save_raw_tracks(path: str | Path, tracks: Tracks, meta: dict[str, Any]) -> N
               else {"camera_dx_px": tracks.camera_dx, "camera_dy_px": tracks.camera_dy})
     if tracks.sigma_dx is not None:
         camera.update({"sigma_dx_px": tracks.sigma_dx, "sigma_dy_px": tracks.sigma_dy})
+    if tracks.region is not None:
+        camera["region"] = tracks.region
     write_npz(path, {"format": np.array(RAW_FORMAT), "meta": np.array(json.dumps(meta, sort_keys=True)),
                      "frame": tracks.frame, "time_s": tracks.time_s, "residual": tracks.residual,
                      "x_px": tracks.x_px, "y_px": tracks.y_px, "offset_dx_px": tracks.offset_dx,
@@ -864,7 +935,8 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
                                  f"{mine!r}): merge only parts of one run (same video, reference, ROI, "
                                  "POIs, method and parameters)")
         if not (np.array_equal(part.small["x_px"], first.small["x_px"])
-                and np.array_equal(part.small["y_px"], first.small["y_px"])):
+                and np.array_equal(part.small["y_px"], first.small["y_px"])
+                and np.array_equal(part.small.get("region", []), first.small.get("region", []))):
             raise InputError(f"{part.path.name} and {first.path.name} track different POIs: "
                              "use the same mask, --grid-step and --roi for every part")
     parts.sort(key=lambda part: int(part.small["frame"][0]) if part.small["frame"].size else -1)
@@ -899,5 +971,6 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
                     timings, any(p.meta["input"]["truncated"] for p in parts),
                     int(first.meta["input"]["header_frames"]), first.meta["identity"]["reference_digest"],
                     camera_dx=concat.get("camera_dx_px"), camera_dy=concat.get("camera_dy_px"),
-                    sigma_dx=concat.get("sigma_dx_px"), sigma_dy=concat.get("sigma_dy_px"))
+                    sigma_dx=concat.get("sigma_dx_px"), sigma_dy=concat.get("sigma_dy_px"),
+                    region=first.small.get("region"))
     return tracks, [p.meta for p in parts]

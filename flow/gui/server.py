@@ -310,12 +310,13 @@ class App:
 
     def result(self, name: Any) -> dict[str, Any]:
         """The run's displacement (mm where it has a scale, else px) and amplitude spectra, by the
-        tool's own reading and spectrum (:mod:`flow.figures`)."""
-        from flow.figures import dominant_frequency, read_measurement
+        tool's own reading and spectrum (:mod:`flow.figures`); of a run of several regions, the
+        first region's (its label says which)."""
+        from flow.figures import dominant_frequency, read_measurements
 
         files = projects.files_of(projects.check_name(name))
         csv_path = self.folder.existing(files["csv"], (".csv",))
-        data = read_measurement(csv_path)
+        data = read_measurements(csv_path)[0]
         units = "mm" if data["has_mm"] else "px"
         time_s = data["time_s"]
         dx, dy = data[f"dx_{units}"], data[f"dy_{units}"]

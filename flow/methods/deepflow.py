@@ -101,6 +101,37 @@ def _mismatch(reference: np.ndarray, current: np.ndarray, cols: np.ndarray, rows
     return float(np.mean(np.abs(warped - reference[rows, cols].astype(np.float32))))
 
 
+@dataclasses.dataclass
+class _Region:
+    """One region of the POI mask: its member's edges and where its chain stands."""
+
+    member: MemberEdges
+    rows: np.ndarray  # the region's POIs
+    cols: np.ndarray
+    prior_rows: np.ndarray  # where the dense flow is read for each outline: its member-side pixel
+    prior_cols: np.ndarray
+    ref_level: float  # the reference's median grey at the POIs
+    theta: np.ndarray | None = None  # the motion of the chain's last frame (None: measure in full)
+    key_mismatch: float = float("nan")  # the POIs' mismatch at the chain's last full measurement
+
+    @classmethod
+    def of(cls, reference: np.ndarray, mask: np.ndarray) -> _Region:
+        member = MemberEdges.from_reference(reference, mask)
+        rows, cols = np.nonzero(mask)
+        height, width = reference.shape
+        inward_x = np.where(member.vertical, member.px, member.px - 0.5 * member.side)
+        inward_y = np.where(member.vertical, member.py - 0.5 * member.side, member.py)
+        return cls(member, rows, cols,
+                   np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1),
+                   np.clip(np.rint(inward_x).astype(np.intp), 0, width - 1),
+                   float(np.median(reference[mask])) or 1.0)
+
+    def gain(self, current: np.ndarray) -> float | None:
+        """The frame's brightness at the POIs relative to the reference's (lighting changes)."""
+        gain = float(np.median(current[self.rows, self.cols])) / self.ref_level
+        return gain if np.isfinite(gain) and gain > 0 else None
+
+
 @register("deepflow")
 class DeepFlow(DenseMethod):
     """DeepFlow: DeepMatching matches blended into a variational energy, then the structure's
@@ -154,15 +185,13 @@ class DeepFlow(DenseMethod):
         self._warm_on = warm
         self.chain_length = 0
         self._chaining = False
-        self._theta: np.ndarray | None = None
-        self._key_mismatch = float("nan")
         self._warm_flow: np.ndarray | None = None
         # Frames measured in full and tracked from their predecessor (see CHAIN_LENGTH).
         self.full_frames = 0
         self.warm_frames = 0
         # Scratch reused from frame to frame: an instance serves one thread at a time.
         self._workspace = Workspace()
-        self._member: MemberEdges | None = None
+        self._regions: list[_Region] = []  # one per region of the mask (see bind)
         super().__init__(
             preset=preset, member=self._member_on, crop=crop, warm=warm,
             **dataclasses.asdict(self._match),
@@ -171,27 +200,25 @@ class DeepFlow(DenseMethod):
 
     def bind(self, reference: np.ndarray, mask: np.ndarray, *, read: np.ndarray | None = None) -> None:
         super().bind(reference, mask, read=read)
-        self._member = None
-        mask = np.asarray(mask, bool)
+        self._regions = []
         self._chaining = False
         self._warm_flow = None
         # The driver reads chain_length after bind: without a member to track (or with
         # background points, whose flow only the dense solve gives) frames stand alone.
         self.chain_length = 0
-        if not self._member_on or mask.shape != reference.shape or mask.sum() < 3:
+        mask = np.asarray(mask)
+        if not self._member_on or mask.shape != reference.shape:
             return
-        self._member = MemberEdges.from_reference(reference, mask)
+        # One member per region of a labelled mask (labels ascending, as the driver counts them).
+        labels = [int(v) for v in np.unique(mask[mask != 0])] if mask.dtype != bool else [1]
+        for label in labels:
+            region = mask == label if mask.dtype != bool else mask
+            if region.sum() < 3:
+                self._regions = []
+                return
+            self._regions.append(_Region.of(reference, region))
         if self._warm_on and read is None:
             self.chain_length = CHAIN_LENGTH
-        self._poi_rows, self._poi_cols = np.nonzero(mask)
-        self._ref_level = float(np.median(reference[mask])) or 1.0
-        # Where the dense flow is read for each outline: its member-side pixel.
-        m = self._member
-        height, width = reference.shape
-        inward_x = np.where(m.vertical, m.px, m.px - 0.5 * m.side)
-        inward_y = np.where(m.vertical, m.py - 0.5 * m.side, m.py)
-        self._prior_cols = np.clip(np.rint(inward_x).astype(np.intp), 0, width - 1)
-        self._prior_rows = np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1)
 
     def window_margin(self, shape: tuple[int, ...]) -> int | None:
         return _matching_margin(self._match, shape)
@@ -200,9 +227,9 @@ class DeepFlow(DenseMethod):
         """Begin a chain: the next frame gets the full measurement, the following ones (until
         the next restart or bind) may be tracked from their predecessor. Before the first
         restart after a bind every call of :meth:`calc` stands alone."""
-        self._chaining = self.chain_length > 1 and self._member is not None
-        self._key_mismatch = float("nan")
-        self._theta = None
+        self._chaining = self.chain_length > 1 and bool(self._regions)
+        for region in self._regions:
+            region.theta, region.key_mismatch = None, float("nan")
 
     def _solve(self, reference: np.ndarray, current: np.ndarray, *,
                whole_shape: tuple[int, ...]) -> np.ndarray:
@@ -222,64 +249,68 @@ class DeepFlow(DenseMethod):
 
     def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         check_pair(reference, current)
-        self.last_sigma_px = None
-        if self._chaining and self._theta is not None and current.shape == self._bound_shape:
-            flow = self._track(reference, current)
-            if flow is not None:
-                self.warm_frames += 1
-                return flow
-        self.full_frames += 1
-        self._theta = None
-        flow = self._dense(reference, current)
-        member = self._member
-        if member is None or member.shape != reference.shape:
-            return flow
-        prior = flow[self._prior_rows, self._prior_cols].astype(np.float64)
-        fit = member.fit(current, prior, gain=self._gain(current))
+        regions = self._regions if current.shape == self._bound_shape else []
+        self.last_sigmas_px = None if not regions else [None] * len(regions)
+        # Each region on its own: tracked from its previous frame where it may be, measured
+        # in full otherwise; the dense flow is solved when any region needs it.
+        tracked = [self._track(reference, current, r) if self._chaining and r.theta is not None else None
+                   for r in regions]
+        if regions and all(t is not None for t in tracked):
+            self.warm_frames += 1
+            if self._warm_flow is None or self._warm_flow.shape[:2] != current.shape:
+                self._warm_flow = np.full(current.shape + (2,), np.nan, np.float32)
+            flow = self._warm_flow
+        else:
+            self.full_frames += 1
+            flow = self._dense(reference, current)
+        for k, (region, warm) in enumerate(zip(regions, tracked, strict=True)):
+            found = warm if warm is not None else self._full(reference, current, flow, region)
+            if found is not None:
+                u, v, self.last_sigmas_px[k] = found
+                flow[region.rows, region.cols, 0] = u
+                flow[region.rows, region.cols, 1] = v
+        return flow
+
+    def _full(self, reference: np.ndarray, current: np.ndarray, flow: np.ndarray,
+              region: _Region) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
+        """A region's POI motion from its edges, starting from the dense ``flow``; None where
+        the dense flow stays (no fit, or the edges match the POIs worse)."""
+        region.theta = None
+        prior = flow[region.prior_rows, region.prior_cols].astype(np.float64)
+        fit = region.member.fit(current, prior, gain=region.gain(current))
         if not fit.ok:
-            return flow
-        u, v = member.displacement(fit)
+            return None
+        u, v = region.member.displacement(fit)
         # The edges must not make the POIs' own match worse than the dense flow's: on a
         # textured member (or outlines that are not the member's) the dense flow is right.
-        dense_u = flow[self._poi_rows, self._poi_cols, 0]
-        dense_v = flow[self._poi_rows, self._poi_cols, 1]
-        edges = _mismatch(reference, current, self._poi_cols, self._poi_rows, u, v)
-        if edges > MATCH_TOLERANCE * _mismatch(reference, current, self._poi_cols, self._poi_rows,
+        dense_u = flow[region.rows, region.cols, 0]
+        dense_v = flow[region.rows, region.cols, 1]
+        edges = _mismatch(reference, current, region.cols, region.rows, u, v)
+        if edges > MATCH_TOLERANCE * _mismatch(reference, current, region.cols, region.rows,
                                                dense_u, dense_v) + MATCH_SLACK:
-            return flow
-        flow[self._poi_rows, self._poi_cols, 0] = u
-        flow[self._poi_rows, self._poi_cols, 1] = v
-        self.last_sigma_px = member.mean_sigma(fit)
+            return None
         if self._chaining:
-            self._theta, self._key_mismatch = fit.params, edges
-        return flow
+            region.theta, region.key_mismatch = fit.params, edges
+        return u, v, region.member.mean_sigma(fit)
 
-    def _gain(self, current: np.ndarray) -> float | None:
-        """The frame's brightness at the POIs relative to the reference's (lighting changes)."""
-        gain = float(np.median(current[self._poi_rows, self._poi_cols])) / self._ref_level
-        return gain if np.isfinite(gain) and gain > 0 else None
-
-    def _track(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray | None:
-        """The POIs' flow from the member's edges, starting from the previous frame's motion
-        (NaN elsewhere); None where the fit fails or its mismatch leaves the chain's band."""
-        member = self._member
-        prior = np.column_stack(member.field.uv(self._theta))
-        fit = member.fit(current, prior, gain=self._gain(current))
+    @staticmethod
+    def _track(reference: np.ndarray, current: np.ndarray,
+               region: _Region) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
+        """A region's POI motion from its edges, starting from its previous frame's motion; None
+        where the fit fails or its mismatch leaves the chain's band (the region is then
+        measured in full)."""
+        member = region.member
+        prior = np.column_stack(member.field.uv(region.theta))
+        fit = member.fit(current, prior, gain=region.gain(current))
         if not fit.ok:
             return None
         u, v = member.displacement(fit)
-        edges = _mismatch(reference, current, self._poi_cols, self._poi_rows, u, v)
-        key = self._key_mismatch
+        edges = _mismatch(reference, current, region.cols, region.rows, u, v)
+        key = region.key_mismatch
         if not key / WARM_RATIO - MATCH_SLACK <= edges <= key * WARM_RATIO + MATCH_SLACK:
             return None
-        if self._warm_flow is None or self._warm_flow.shape[:2] != current.shape:
-            self._warm_flow = np.full(current.shape + (2,), np.nan, np.float32)
-        flow = self._warm_flow
-        flow[self._poi_rows, self._poi_cols, 0] = u
-        flow[self._poi_rows, self._poi_cols, 1] = v
-        self.last_sigma_px = member.mean_sigma(fit)
-        self._theta = fit.params
-        return flow
+        region.theta = fit.params
+        return u, v, member.mean_sigma(fit)
 
 
 @register("deepflow-dense")

@@ -128,7 +128,7 @@ def test_frames_stand_alone_where_there_is_nothing_to_track(scene) -> None:
     for method, read, expected in cases:
         method.bind(reference, mask, read=read)
         assert method.chain_length == expected, (type(method).__name__, read is None)
-    member = cases[0][0]._member
+    member = cases[0][0]._regions[0].member
     prior = np.zeros((member.n_profiles, 2))
     prior[0] = np.nan  # one outline without dense flow: the least-squares guess is all NaN
     assert not member.fit(clip.frames[5], prior).ok
