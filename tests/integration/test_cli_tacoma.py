@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from flow.cli import main
+from flow.figures import read_measurements
 
 ROOT = Path(__file__).resolve().parents[2]
 CLIP = ROOT / ".." / "shared" / "data" / "tacoma_bridge.mp4"
@@ -80,3 +81,19 @@ def test_tacoma_script_writes_the_figures(tmp_path) -> None:
     assert (tmp_path / "tacoma_displacement.png").is_file() and (tmp_path / "tacoma_pois.png").is_file()
     f_dense, f_klt = dominant(result.stdout, "deepflow", "dy"), dominant(result.stdout, "klt", "dy")
     assert BAND_HZ[0] < f_dense < BAND_HZ[1] and abs(f_dense - f_klt) < 0.03, result.stdout
+    # The deck at four places in one run: the near curb (regions 1-3) and the far deck edge
+    # (region 4) swing at the same frequency, the far edge against the near one: the deck twists.
+    assert (tmp_path / "tacoma_regions.png").is_file() and (tmp_path / "tacoma_regions_pois.png").is_file()
+    regions = read_measurements(tmp_path / "data" / "regions.csv")
+    assert [r["region"] for r in regions] == [1, 2, 3, 4]
+    for label in (1, 2, 3, 4):
+        assert BAND_HZ[0] < dominant(result.stdout, f"deepflow region {label}", "dy") < BAND_HZ[1], result.stdout
+    dy = [r["dy_px"] for r in regions]
+    assert all(np.isfinite(values).mean() > 0.75 for values in dy)
+
+    def correlation(a: np.ndarray, b: np.ndarray) -> float:
+        both = np.isfinite(a) & np.isfinite(b)
+        return float(np.corrcoef(a[both], b[both])[0, 1])
+
+    assert correlation(dy[0], dy[1]) > 0.5 and correlation(dy[0], dy[3]) < -0.5
+
