@@ -101,7 +101,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "export", help="a measurement as universal file format (UFF 58) time histories for modal software",
         description="Write a `refflow track` CSV as a universal file format file: a units record (dataset "
-                    "164, SI) and one time history (dataset 58) per direction, in m, on a uniform clock.")
+                    "164, SI) and one time history (dataset 58) per direction (and per region, node = "
+                    "region), in m, on a uniform clock.")
     p.add_argument("csv", help="a `refflow track` CSV")
     p.add_argument("--out", required=True, help="output file, .uff or .unv")
     p.set_defaults(func=cmd_export)

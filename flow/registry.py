@@ -72,8 +72,9 @@ class DenseMethod(Method):
     A method may also use what the user says about the structure: the driver calls
     :meth:`bind` once with the reference frame and the POI mask before the frames, and
     after each :meth:`calc` reads :attr:`last_sigmas_px`, the method's own standard
-    uncertainty ``(sigma_x, sigma_y)`` of the mean displacement over each region's POIs (one
-    entry per label of the mask, ascending; None, or a None entry: the driver estimates one).
+    uncertainty ``(sigma_x, sigma_y)`` of the mean displacement over each region's POIs, by
+    the region's label in the mask (1 for a bool mask); a region it lacks (or None): the
+    driver estimates one.
 
     Parameters
     ----------
@@ -85,7 +86,7 @@ class DenseMethod(Method):
     """
 
     kind = "dense"
-    last_sigmas_px: list[tuple[float, float] | None] | None = None
+    last_sigmas_px: dict[int, tuple[float, float]] | None = None
 
     def __init__(self, *, crop: bool = True, **params: Any) -> None:
         if not isinstance(crop, bool):

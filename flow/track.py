@@ -269,12 +269,16 @@ def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.where(inside, top * (1 - fy) + bottom * fy, np.nan).astype(np.float32)
 
 
-def _residual(reference_values: np.ndarray, current: np.ndarray, x: np.ndarray, y: np.ndarray,
-              dx: np.ndarray, dy: np.ndarray) -> float:
-    warped = _sample(current, x + dx, y + dy)
-    diff = np.abs(warped - reference_values)
+def _mean_abs(error: np.ndarray) -> float:
+    """Mean |error| over its finite values (NaN where none is): a photometric residual."""
+    diff = np.abs(error)
     diff = diff[np.isfinite(diff)]
     return float(diff.mean()) if diff.size else float("nan")
+
+
+def _residual(reference_values: np.ndarray, current: np.ndarray, x: np.ndarray, y: np.ndarray,
+              dx: np.ndarray, dy: np.ndarray) -> float:
+    return _mean_abs(_sample(current, x + dx, y + dy) - reference_values)
 
 
 def _frames(source: FrameSource, start: int, stop: int | None,
@@ -464,8 +468,7 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     labels = np.unique(region_of)
     if labels.size > 1 and labels[0] <= 0:
         raise ValueError(f"{int(np.sum(region_of <= 0))} POIs lie outside the labelled mask's regions")
-    groups = [np.flatnonzero(region_of == label) for label in labels] if labels.size > 1 \
-        else [np.arange(len(poi_xy))]
+    groups = [np.flatnonzero(region_of == label) for label in labels]
     read = None
     if background is not None:
         read = np.zeros(reference.shape, bool)
@@ -506,16 +509,10 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         dx = flow[rows_, columns, 0].astype(np.float32)
         dy = flow[rows_, columns, 1].astype(np.float32)
         error = _sample(current, xs + dx, ys + dy) - ref_values
-        residual = np.full(len(groups), np.nan)
-        sigma = np.full((len(groups), 2), np.nan)
-        own = getattr(method, "last_sigmas_px", None)
-        for k, group in enumerate(groups):
-            diff = np.abs(error[group])
-            finite = diff[np.isfinite(diff)]
-            if finite.size:
-                residual[k] = float(finite.mean())
-            given = own[k] if own is not None and k < len(own) else None
-            sigma[k] = given if given is not None else lks[k].sigma(error[group])
+        own = getattr(method, "last_sigmas_px", None) or {}
+        residual = np.array([_mean_abs(error[group]) for group in groups])
+        sigma = np.array([own[int(label)] if int(label) in own else lk.sigma(error[group])
+                          for label, group, lk in zip(labels, groups, lks, strict=True)], np.float64)
         cdx, cdy, camera = compensate(flow, dx, dy)
         return cdx, cdy, residual, camera, sigma
 

@@ -105,6 +105,7 @@ def _mismatch(reference: np.ndarray, current: np.ndarray, cols: np.ndarray, rows
 class _Region:
     """One region of the POI mask: its member's edges and where its chain stands."""
 
+    label: int  # the region's value in the mask (1 for a bool mask)
     member: MemberEdges
     rows: np.ndarray  # the region's POIs
     cols: np.ndarray
@@ -115,13 +116,13 @@ class _Region:
     key_mismatch: float = float("nan")  # the POIs' mismatch at the chain's last full measurement
 
     @classmethod
-    def of(cls, reference: np.ndarray, mask: np.ndarray) -> _Region:
+    def of(cls, reference: np.ndarray, mask: np.ndarray, label: int) -> _Region:
         member = MemberEdges.from_reference(reference, mask)
         rows, cols = np.nonzero(mask)
         height, width = reference.shape
         inward_x = np.where(member.vertical, member.px, member.px - 0.5 * member.side)
         inward_y = np.where(member.vertical, member.py - 0.5 * member.side, member.py)
-        return cls(member, rows, cols,
+        return cls(label, member, rows, cols,
                    np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1),
                    np.clip(np.rint(inward_x).astype(np.intp), 0, width - 1),
                    float(np.median(reference[mask])) or 1.0)
@@ -209,14 +210,13 @@ class DeepFlow(DenseMethod):
         mask = np.asarray(mask)
         if not self._member_on or mask.shape != reference.shape:
             return
-        # One member per region of a labelled mask (labels ascending, as the driver counts them).
-        labels = [int(v) for v in np.unique(mask[mask != 0])] if mask.dtype != bool else [1]
-        for label in labels:
-            region = mask == label if mask.dtype != bool else mask
+        # One member per region of a labelled mask (a bool mask: one region, label 1).
+        for label in np.unique(mask[mask != 0]):
+            region = mask == label
             if region.sum() < 3:
                 self._regions = []
                 return
-            self._regions.append(_Region.of(reference, region))
+            self._regions.append(_Region.of(reference, region, int(label)))
         if self._warm_on and read is None:
             self.chain_length = CHAIN_LENGTH
 
@@ -250,7 +250,7 @@ class DeepFlow(DenseMethod):
     def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         check_pair(reference, current)
         regions = self._regions if current.shape == self._bound_shape else []
-        self.last_sigmas_px = None if not regions else [None] * len(regions)
+        self.last_sigmas_px = {}
         # Each region on its own: tracked from its previous frame where it may be, measured
         # in full otherwise; the dense flow is solved when any region needs it.
         tracked = [self._track(reference, current, r) if self._chaining and r.theta is not None else None
@@ -263,10 +263,10 @@ class DeepFlow(DenseMethod):
         else:
             self.full_frames += 1
             flow = self._dense(reference, current)
-        for k, (region, warm) in enumerate(zip(regions, tracked, strict=True)):
+        for region, warm in zip(regions, tracked, strict=True):
             found = warm if warm is not None else self._full(reference, current, flow, region)
             if found is not None:
-                u, v, self.last_sigmas_px[k] = found
+                u, v, self.last_sigmas_px[region.label] = found
                 flow[region.rows, region.cols, 0] = u
                 flow[region.rows, region.cols, 1] = v
         return flow
