@@ -7,7 +7,9 @@ frame times. Each point's displacement is taken along its dominant direction (or
 spectrum: :func:`flow.figures.resample_uniform`), and the points together go to the
 output-only identification of :func:`refflow.modal.identify` (FDD peaks + SSI-cov over
 model orders). Written, all or nothing: a JSON of the modes and two PNG figures, a
-stabilisation diagram and the mode shapes.
+stabilisation diagram and the mode shapes; where the points' positions are known (the sidecar's
+centroids) and the run's video can be read again, also each mode drawn over the run's reference
+frame (a PNG) and animated, exaggerated, as a GIF per mode (as pyidi offers).
 """
 
 from __future__ import annotations
@@ -31,6 +33,14 @@ from refflow.io import atomic_paths, json_text, versions
 
 DIRECTIONS = ("auto", "dx", "dy")
 FIGURE_SUFFIXES = ("_stabilisation.png", "_shapes.png")
+FRAME_SUFFIX = "_shapes_frame.png"
+# The animation: one cycle of the mode in this many frames, shown in this many ms each, the
+# largest point's swing this fraction of the backdrop's larger side (a mode shape has no
+# physical amplitude: it is exaggerated to be seen), the backdrop at most this wide.
+ANIMATION_FRAMES = 24
+ANIMATION_FRAME_MS = 60
+SWING_FRACTION = 0.08
+ANIMATION_MAX_WIDTH = 640
 # A point whose frames are bridged beyond this share is measured mostly by interpolation.
 _BRIDGED_WARN_FRAC = 0.2
 
@@ -83,10 +93,9 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
     paths = [Path(p) for p in csv_paths]
     _check_options(paths, n_modes, band_hz, direction)
     figures = figure_paths(out_json, out_prefix)
-    outputs = [*figures, Path(out_json)]  # the JSON last: it is what other tools look for
-    check_outputs(outputs, [(what, path) for csv_path in paths for what, path in (
-        (f"the CSV {csv_path}", csv_path), (f"{csv_path}'s sidecar", csv_path.with_suffix(".json")))],
-        option="--out or --figures")
+    inputs = [(what, path) for csv_path in paths for what, path in (
+        (f"the CSV {csv_path}", csv_path), (f"{csv_path}'s sidecar", csv_path.with_suffix(".json")))]
+    check_outputs([*figures, Path(out_json)], inputs, option="--out or --figures")
     # Every region of every CSV is a measurement point.
     found = [(path, data) for path in paths for data in read_measurements(path)]
     point_paths = [path for path, _ in found]
@@ -145,11 +154,24 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
         "notes": notes,
         "versions": versions(),
     }
+    backdrop, why_not = reference_backdrop(paths[0], points)
+    pictures: list[Path] = []
+    if backdrop is None:
+        notes.append(f"mode shapes not drawn over the video: {why_not}")
+    elif result["modes"]:
+        prefix = str(figures[0])[: -len(FIGURE_SUFFIXES[0])]
+        pictures = [Path(prefix + FRAME_SUFFIX)] + [Path(f"{prefix}_mode{m['mode']}.gif") for m in result["modes"]]
+        check_outputs(pictures, inputs, option="--out or --figures")
+    outputs = [*figures, *pictures, Path(out_json)]  # the JSON last: it is what other tools look for
     text = json_text(result)  # a bad value fails before any file exists
-    with atomic_paths(*outputs) as (stabilisation_png, shapes_png, json_tmp):
-        stabilisation_figure(diagnostics, modes, stabilisation_png, units=units)
-        shapes_figure(result, shapes_png)
-        json_tmp.write_text(text)
+    with atomic_paths(*outputs) as written:
+        stabilisation_figure(diagnostics, modes, written[0], units=units)
+        shapes_figure(result, written[1])
+        if pictures:
+            shapes_over_frame(result, backdrop, written[2])
+            for mode, gif in zip(result["modes"], written[3:-1], strict=True):
+                mode_animation(result, mode, backdrop, gif)
+        written[-1].write_text(text)
     return {**result, "outputs": [str(p) for p in outputs]}
 
 
@@ -390,6 +412,136 @@ def shapes_figure(result: dict[str, Any], path: str | Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def reference_backdrop(csv_path: Path, points: list[dict[str, Any]]) -> tuple[np.ndarray | None, str]:
+    """The run's reference frame (full frame, grey uint8, undistorted as the run was) to draw the
+    modes over, or None and why not: a point without a position, a sidecar that names no
+    readable video (moved, or a run of another machine), a calibration file gone."""
+    if not points or any("position_px" not in p for p in points):
+        return None, "the points' positions are not known (no poi.centroid_px in the sidecars)"
+    try:
+        sidecar = json.loads(csv_path.with_suffix(".json").read_text())
+        video = Path(sidecar["input"]["path"])
+        index = int(sidecar.get("reference_frame") or 0)
+        calibration = sidecar.get("calibration")
+    except (OSError, ValueError, KeyError, TypeError):
+        return None, f"{csv_path.with_suffix('.json')} names no input video"
+    from flow.io import FrameSource, Roi, as_uint8
+
+    try:
+        source = FrameSource(video, require_fps=False)
+        frame = next((grey for _, _, grey in source.frames(index, index + 1)), None)
+        if frame is not None and calibration:
+            if list(calibration.get("video_origin", [0, 0])) != [0, 0]:
+                return None, "the run's video is a window of the calibrated sensor (--video-origin)"
+            from flow.calibration import Undistorter, load_calibration
+
+            size = (frame.shape[1], frame.shape[0])
+            frame = Undistorter(load_calibration(calibration["file"]), Roi(0, 0, *size), size)(frame)
+    except (InputError, OSError, KeyError, TypeError, ValueError) as err:
+        return None, f"the run's video {str(video)!r} cannot be read again ({str(err).splitlines()[0]})"
+    if frame is None:
+        return None, f"the run's video {str(video)!r} has no frame {index} (the reference)"
+    return as_uint8(frame), ""
+
+
+def _point_arrays(result: dict[str, Any], mode: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (P, 2) and the mode's displacement (P, 2) of the points, image x right, y down:
+    the shape value along each point's direction."""
+    points = result["points"]
+    where = np.array([p["position_px"] for p in points], float)
+    direction = np.array([p["direction_px"] for p in points], float)
+    return where, np.asarray(mode["shape"], float)[:, None] * direction
+
+
+def _swing_px(backdrop: np.ndarray) -> float:
+    return SWING_FRACTION * max(backdrop.shape)
+
+
+def _mode_title(mode: dict[str, Any]) -> str:
+    zeta = mode["damping_ratio"]
+    return (f"mode {mode['mode']}: {mode['freq_hz']:.4g} Hz"
+            + (f", ζ = {100 * zeta:.2g} %" if zeta is not None else ", ζ n/a"))
+
+
+def shapes_over_frame(result: dict[str, Any], backdrop: np.ndarray, path: str | Path) -> None:
+    """One panel per mode over the reference frame: each point at its position, the mode's
+    deflected shape (points moved by the exaggerated shape, joined in the points' order) in
+    both phases of the cycle."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from flow.figures import region_colour
+
+    modes = result["modes"]
+    height, width = backdrop.shape
+    panel = 6.0 * width / max(height, width) + 1.0
+    fig, axes = plt.subplots(1, len(modes), figsize=(panel * len(modes), 6.0 * height / max(height, width) + 1.0),
+                             squeeze=False)
+    swing = _swing_px(backdrop)
+    for ax, mode in zip(axes[0], modes, strict=True):
+        where, moved = _point_arrays(result, mode)
+        ax.imshow(backdrop, cmap="gray", vmin=0, vmax=255)
+        ax.plot(where[:, 0], where[:, 1], color="0.85", lw=1, ls=":", label="rest")
+        for sign, style in ((1.0, "-"), (-1.0, "--")):
+            bent = where + sign * swing * moved
+            ax.plot(bent[:, 0], bent[:, 1], color="tab:red", lw=1.6, ls=style,
+                    label="deflected (exaggerated)" if sign > 0 else "half a cycle later")
+        for i, (point, (x, y)) in enumerate(zip(result["points"], where, strict=True)):
+            colour = np.array(region_colour(point.get("region", i + 1))[::-1]) / 255.0  # BGR -> RGB
+            ax.annotate("", xy=(x + swing * moved[i, 0], y + swing * moved[i, 1]), xytext=(x, y),
+                        arrowprops={"arrowstyle": "->", "color": colour, "lw": 1.8})
+            ax.plot([x], [y], "o", ms=5, color=colour, mec="white", mew=0.8)
+            ax.annotate(point["name"], (x, y), xytext=(5, 5), textcoords="offset points", fontsize=7,
+                        color="white", bbox={"boxstyle": "round,pad=0.15", "fc": "black", "alpha": 0.5, "ec": "none"})
+        ax.set_title(_mode_title(mode), fontsize=10)
+        ax.set_xlim(0, width)
+        ax.set_ylim(height, 0)
+        ax.set_axis_off()
+    axes[0][0].legend(loc="lower left", fontsize=7, framealpha=0.7)
+    fig.suptitle(f"Mode shapes over the reference frame (largest swing drawn as {swing:.0f} px)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def mode_animation(result: dict[str, Any], mode: dict[str, Any], backdrop: np.ndarray, path: str | Path) -> None:
+    """An animated GIF of one cycle of ``mode`` over the reference frame: the points swing
+    along their directions by the exaggerated shape, joined in the points' order."""
+    import cv2
+    from PIL import Image
+
+    from flow.figures import region_colour
+
+    scale = min(1.0, ANIMATION_MAX_WIDTH / backdrop.shape[1])
+    base = cv2.cvtColor(cv2.resize(backdrop, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+                        if scale < 1.0 else backdrop, cv2.COLOR_GRAY2RGB)
+    where, moved = _point_arrays(result, mode)
+    where, swing = where * scale, _swing_px(base)
+    colours = [region_colour(p.get("region", i + 1))[::-1] for i, p in enumerate(result["points"])]  # RGB
+    shift = 4  # drawn with 1/16 px precision
+    frames = []
+    for k in range(ANIMATION_FRAMES):
+        bent = where + np.sin(2 * np.pi * k / ANIMATION_FRAMES) * swing * moved
+        image = base.copy()
+        cv2.polylines(image, [np.round(where * (1 << shift)).astype(np.int32)], False, (200, 200, 200), 1,
+                      cv2.LINE_AA, shift)
+        cv2.polylines(image, [np.round(bent * (1 << shift)).astype(np.int32)], False, (230, 40, 40), 2,
+                      cv2.LINE_AA, shift)
+        for (x, y), colour in zip(bent, colours, strict=True):
+            cv2.circle(image, (int(round(x * (1 << shift))), int(round(y * (1 << shift)))), 5 << shift,
+                       colour, -1, cv2.LINE_AA, shift)
+        cv2.putText(image, _mode_title(mode).replace("ζ", "zeta"), (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    (255, 255, 0), 1, cv2.LINE_AA)
+        frames.append(Image.fromarray(image))
+    # One palette for the whole cycle, no dithering: a small file whose backdrop does not flicker.
+    palette = frames[0].quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    frames = [f.quantize(palette=palette, dither=Image.Dither.NONE) for f in frames]
+    frames[0].save(path, format="GIF", save_all=True, append_images=frames[1:], duration=ANIMATION_FRAME_MS,
+                   loop=0, optimize=False)
 
 
 def _parse_band(text: str | None) -> tuple[float, float] | None:

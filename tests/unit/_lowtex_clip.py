@@ -59,12 +59,15 @@ def make_clip(*, seed: int = 0, frames: int = 90, fps: float = 60.0, height: int
               axis: str = "x", gain_drift: float = 0.0, noise: float = 1.2,
               occlude_s: tuple[float, float] | None = None, blur_px: float = 0.0,
               jump: tuple[float, float, float] | None = None,
-              wall_mean: float = 111.0, wall_std: float = 35.0, member_grey: float = 149.0) -> Clip:
+              wall_mean: float = 111.0, wall_std: float = 35.0, member_grey: float = 149.0,
+              motion_px: np.ndarray | None = None) -> Clip:
     """Render a clip (see the module doc). ``axis="y"``: a horizontal member moving vertically
     (the scene is drawn for x and transposed). ``bend``: the displacement grows by this
     fraction from the top row to the bottom row. ``jump = (t0, t1, px)``: an extra
     displacement of ``px`` between ``t0`` and ``t1`` s. ``occlude_s``: a bright sheet covers
-    the whole view. ``blur_px``: the lens's Gaussian blur (sigma, final pixels)."""
+    the whole view. ``blur_px``: the lens's Gaussian blur (sigma, final pixels). ``motion_px``:
+    the displacement of every frame, given (``amplitude``, ``frequency_hz`` and the noise then
+    unused; the random draws stay the same, so the wall and paint are those of ``seed``)."""
     rng = np.random.default_rng(seed)
     h, w = (height, width) if axis == "x" else (width, height)
     H, W = h * UP, w * UP
@@ -84,6 +87,10 @@ def make_clip(*, seed: int = 0, frames: int = 90, fps: float = 60.0, height: int
     phase = rng.uniform(0, 2 * np.pi)
     base = amplitude * np.sin(2 * np.pi * frequency_hz * t + phase)
     base += 0.08 * amplitude * rng.standard_normal(frames)  # not a pure tone
+    if motion_px is not None:
+        if np.shape(motion_px) != (frames,):
+            raise ValueError(f"motion_px has shape {np.shape(motion_px)}, not ({frames},)")
+        base = np.asarray(motion_px, np.float64).copy()
     if jump is not None:
         base += np.where((t >= jump[0]) & (t < jump[1]), jump[2], 0.0)
     occluded = np.zeros(frames, bool) if occlude_s is None else (t >= occlude_s[0]) & (t < occlude_s[1])
