@@ -49,8 +49,6 @@ class FilterResult:
     mcr: np.ndarray  # (P,) mean cross-correlation (NaN where not computed)
     threshold_px: float
     notes: list[str] = field(default_factory=list)
-    offset_x: np.ndarray | None = None  # (P,) removed offsets, px
-    offset_y: np.ndarray | None = None
 
 
 def block_rows(n_frames: int, n_points: int, *, copies: int = 8) -> Iterator[slice]:
@@ -96,11 +94,6 @@ def reference_offset(d: np.ndarray, reference_row: int = 0) -> np.ndarray:
     return offset
 
 
-def remove_offset(d: np.ndarray, reference_row: int = 0) -> np.ndarray:
-    """Subtract each POI's value at the reference frame (NaN-safe: first finite value)."""
-    return np.asarray(d, np.float64) - reference_offset(d, reference_row)
-
-
 def _zscore(block: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
     centred = np.where(np.isfinite(block), block - mean, 0.0)
     return np.divide(centred, std, out=np.zeros_like(centred), where=std > 0)
@@ -135,21 +128,6 @@ def _mcr_streaming(blocks: Callable[[], Iterator[np.ndarray]], n_points: int) ->
         z = _zscore(block, mean, std)
         mcr += (z * (z_sum[:, None] - z)).sum(axis=0)
     return mcr / (n_samples * (n_points - 1))
-
-
-def mean_cross_correlation(tracks: np.ndarray) -> np.ndarray:
-    """Eq. (11): mean over ``j != m`` of the correlation of track ``m`` with track ``j``.
-
-    ``tracks`` is ``(T, P)`` (axes may be stacked along T); NaNs count as the
-    track's mean.
-    """
-    n_samples, n_points = tracks.shape
-
-    def blocks() -> Iterator[np.ndarray]:
-        for rows in block_rows(n_samples, n_points):
-            yield np.asarray(tracks[rows], np.float64)
-
-    return _mcr_streaming(blocks, n_points)
 
 
 def filter_and_average(dx: np.ndarray, dy: np.ndarray, *, valid: np.ndarray | None = None,
@@ -223,7 +201,7 @@ def filter_and_average(dx: np.ndarray, dy: np.ndarray, *, valid: np.ndarray | No
             notes.append(f"eq. (11) removed every POI (max mcr {np.nanmax(mcr):.2f}); kept eq. (10) survivors")
             kept = kept_threshold.copy()
     out_x, out_y = average_tracks(dx, dy, kept, (offset_x, offset_y), average=average)
-    return FilterResult(out_x, out_y, kept, kept_threshold, mcr, threshold, notes, offset_x, offset_y)
+    return FilterResult(out_x, out_y, kept, kept_threshold, mcr, threshold, notes)
 
 
 def average_tracks(dx: np.ndarray, dy: np.ndarray, kept: np.ndarray,
