@@ -125,14 +125,6 @@ class MatchGrid:
     spacing: float
     offset: float
 
-    def as_array(self) -> np.ndarray:
-        """Valid matches as rows ``x1, y1, x2, y2, score`` (DeepMatching's output order)."""
-        m = self.valid
-        return np.stack(
-            [self.x[m], self.y[m], self.x[m] + self.dx[m], self.y[m] + self.dy[m], self.score[m]],
-            axis=1,
-        ).astype(np.float32)
-
 
 def _descriptor_planes(image: np.ndarray, params: MatchParams) -> np.ndarray:
     """Per-pixel oriented-gradient descriptors as planes, shape (8, H, W), float32."""
@@ -150,11 +142,6 @@ def _descriptor_planes(image: np.ndarray, params: MatchParams) -> np.ndarray:
         out[k] = proj
     np.power(out, params.desc_power, out=out)
     return out
-
-
-def pixel_descriptors(image: np.ndarray, params: MatchParams) -> np.ndarray:
-    """Per-pixel oriented-gradient descriptors, shape (H, W, 8), float32."""
-    return np.moveaxis(_descriptor_planes(image, params), 0, -1)
 
 
 def _patch_norms(planes: np.ndarray) -> np.ndarray:
