@@ -49,6 +49,7 @@ import cv2
 import numpy as np
 from numba import njit
 
+from flow.checks import check_grey_pair
 from flow.params import check_fields
 
 ATOMIC = 4  # atomic patch side in (downscaled) pixels
@@ -595,13 +596,21 @@ def deep_matching(
     Parameters
     ----------
     reference, current : ndarray (H, W), uint8 or float32
+        Grey images of one shape.
     params : MatchParams, optional
 
     Returns
     -------
     MatchGrid
         One match per atomic patch (``valid`` marks the verified ones).
+
+    Raises
+    ------
+    ValueError
+        If the images differ in shape, are not 2-D or not uint8 / float32 (the numba
+        kernels do not bounds-check), or ``params.downscale`` is not a positive integer.
     """
+    check_grey_pair(reference, current)
     params = params or MatchParams()
     if params.downscale < 1 or int(params.downscale) != params.downscale:
         raise ValueError(f"downscale must be a positive integer, got {params.downscale!r}")

@@ -71,6 +71,8 @@ import cv2
 import numpy as np
 from numba import njit
 
+from flow.checks import check_shape
+
 # Visible background pixels the hidden ones under the outline are predicted from.
 N_PREDICT = 3
 # Farthest pixel (from the first visible background pixel) a predictor is made for.
@@ -645,7 +647,14 @@ class MemberEdges:
         ``prior_uv``: ``(n_profiles, 2)`` dense-flow displacement at each profile's outline,
         the starting guess and the weak prior. ``gain``: the frame's brightness relative to
         the reference (lighting changes), for the background predictor's mean.
+        Raises ``ValueError`` naming the shapes if ``current`` is not the reference's shape or
+        ``prior_uv`` not ``(n_profiles, 2)`` (the numba kernels do not bounds-check).
         """
+        check_shape("current", current, self.shape)
+        if np.shape(prior_uv) != (self.n_profiles, 2):
+            raise ValueError(f"prior_uv has shape {np.shape(prior_uv)} but the member has "
+                             f"{self.n_profiles} edge profiles: prior_uv must have shape "
+                             f"({self.n_profiles}, 2)")
         empty = MemberFit(False, np.zeros(N_PARAMS), np.full((N_PARAMS, N_PARAMS), np.nan), 0,
                           self.n_profiles, float("nan"))
         if self.n_profiles < self.params.min_profiles:

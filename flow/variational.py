@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 from numba import njit
 
+from flow.checks import check_grey_pair, check_shape
 from flow.params import check_fields
 
 
@@ -852,8 +853,8 @@ def refine(
 
     Parameters
     ----------
-    reference, current : ndarray (H, W)
-        Grey images (any range; scaled to [0, 1] internally using 255 for uint8).
+    reference, current : ndarray (H, W), uint8 or float32
+        Grey images of one shape (any range; scaled to [0, 1] internally using 255 for uint8).
     params : VariationalParams
     match_flow, match_weight : ndarray (H, W, 2) and (H, W), optional
         Dense rasterised matches ``w'`` and their weights ``c * phi`` in [0, 1].
@@ -863,7 +864,18 @@ def refine(
     Returns
     -------
     ndarray (H, W, 2) float32
+
+    Raises
+    ------
+    ValueError
+        If the images differ in shape, are not 2-D or not uint8 / float32, or the matches do
+        not have the reference's shape (the numba kernels do not bounds-check).
     """
+    check_grey_pair(reference, current)
+    if match_flow is not None:
+        check_shape("match_flow", match_flow, reference.shape, (2,))
+    if match_weight is not None:
+        check_shape("match_weight", match_weight, reference.shape)
     ws = workspace if workspace is not None else Workspace()
     scale_in = 1.0 / 255.0 if reference.dtype == np.uint8 else 1.0
     im1 = reference.astype(np.float32) * np.float32(scale_in)

@@ -114,3 +114,13 @@ def test_bad_parameters():
         deep_matching(image, image, MatchParams(downscale=0))
     with pytest.raises(ValueError, match="interpolation"):
         deepflow_module.DeepMatchingDense(interpolation="cubic")
+
+
+def test_mismatched_or_unsupported_images_raise_before_the_kernels():
+    image = np.zeros((64, 64), np.uint8)
+    with pytest.raises(ValueError, match=r"\(64, 48\).*\(64, 64\)"):
+        deep_matching(image, np.zeros((64, 48), np.uint8))
+    with pytest.raises(ValueError, match="ndim 3"):
+        deep_matching(image, np.zeros((64, 64, 3), np.uint8))
+    with pytest.raises(ValueError, match="float64"):
+        deep_matching(image, np.zeros((64, 64)))
