@@ -42,6 +42,7 @@ from flow.filtering import (
     row_blocks,
 )
 from flow.io import FrameSource, InputError
+from flow.robust import MAD_TO_SIGMA
 
 Undistort = Callable[[np.ndarray], np.ndarray] | None
 
@@ -689,7 +690,7 @@ def flag_invalid(residual: np.ndarray, *, k_mad: float = 8.0, ratio: float = 2.5
     if finite.size == 0:
         return np.zeros(residual.shape, bool), float("nan")
     median = float(np.median(finite))
-    sigma = 1.4826 * float(np.median(np.abs(finite - median)))
+    sigma = MAD_TO_SIGMA * float(np.median(np.abs(finite - median)))
     threshold = max(median + k_mad * sigma, ratio * median, floor)
     return np.isfinite(residual) & (residual <= threshold), threshold
 
@@ -721,7 +722,7 @@ def poi_spread(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
     with _NanQuiet():
         mad_x = np.nanmedian(np.abs(dx - np.nanmedian(dx, axis=1, keepdims=True)), axis=1)
         mad_y = np.nanmedian(np.abs(dy - np.nanmedian(dy, axis=1, keepdims=True)), axis=1)
-    return 1.4826 * np.hypot(mad_x, mad_y)
+    return MAD_TO_SIGMA * np.hypot(mad_x, mad_y)
 
 
 def consistent_fraction(dx: np.ndarray, dy: np.ndarray, *, band_px: float,
@@ -828,7 +829,7 @@ def _standard_error(block: np.ndarray) -> np.ndarray:
     with _NanQuiet():
         n = np.isfinite(block).sum(axis=1)
         mad = np.nanmedian(np.abs(block - np.nanmedian(block, axis=1, keepdims=True)), axis=1)
-        return np.where(n >= 2, 1.4826 * mad / np.sqrt(np.maximum(n, 1)), np.nan)
+        return np.where(n >= 2, MAD_TO_SIGMA * mad / np.sqrt(np.maximum(n, 1)), np.nan)
 
 
 def iter_rows(result: Measurement, mm_per_px: float, region: int | None = None) -> Iterable[dict[str, Any]]:
