@@ -36,6 +36,13 @@ import numpy as np
 
 #: Bytes of float64 working arrays one block of frames may occupy.
 CHUNK_BYTES = 32 << 20
+#: Eq. (10) default: a POI whose peak |d| is below this fraction of the median over POIs
+#: of that peak counts as background (the paper thresholds "with its median value"; half of
+#: it keeps the parts of a member that move less than the typical POI).
+THRESHOLD_RATIO = 0.5
+#: Eq. (11) default: a POI whose mean correlation with the other POIs is below this moves
+#: on its own (an outlier), not with the structure.
+MCR_THRESHOLD = 0.5
 
 
 @dataclass
@@ -132,8 +139,8 @@ def _mcr_streaming(blocks: Callable[[], Iterator[np.ndarray]], n_points: int) ->
 
 def filter_and_average(dx: np.ndarray, dy: np.ndarray, *, valid: np.ndarray | None = None,
                        reference_row: int = 0, offset: tuple[np.ndarray, np.ndarray] | None = None,
-                       threshold_ratio: float = 0.5, threshold_px: float | None = None,
-                       mcr_threshold: float = 0.5, average: str = "mean",
+                       threshold_ratio: float = THRESHOLD_RATIO, threshold_px: float | None = None,
+                       mcr_threshold: float = MCR_THRESHOLD, average: str = "mean",
                        enabled: bool = True) -> FilterResult:
     """Filter POI tracks with eq. (10)-(11) and average them with eq. (12).
 
