@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flow.robust import MAD_TO_SIGMA
+
 MODELS = ("affine", "translation")
 # An affine fit extrapolates a tilt of the background plane: below this spread (px)
 # along its narrow direction the points cannot pin a tilt down, and the shift alone is used.
@@ -84,7 +86,7 @@ class Background:
             if step == iterations:
                 break
             resid = np.hypot(*(design @ coef - target).T)
-            scale = 1.4826 * np.median(np.abs(resid[keep] - np.median(resid[keep])))
+            scale = MAD_TO_SIGMA * np.median(np.abs(resid[keep] - np.median(resid[keep])))
             trimmed = ok & (resid <= max(3.0 * scale + np.median(resid[keep]), 0.05))
             if trimmed.sum() < design.shape[1] + 1 or np.array_equal(trimmed, keep):
                 break

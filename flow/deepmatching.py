@@ -49,6 +49,7 @@ import cv2
 import numpy as np
 from numba import njit
 
+from flow.checks import check_grey_pair
 from flow.params import check_fields
 
 ATOMIC = 4  # atomic patch side in (downscaled) pixels
@@ -125,14 +126,6 @@ class MatchGrid:
     spacing: float
     offset: float
 
-    def as_array(self) -> np.ndarray:
-        """Valid matches as rows ``x1, y1, x2, y2, score`` (DeepMatching's output order)."""
-        m = self.valid
-        return np.stack(
-            [self.x[m], self.y[m], self.x[m] + self.dx[m], self.y[m] + self.dy[m], self.score[m]],
-            axis=1,
-        ).astype(np.float32)
-
 
 def _descriptor_planes(image: np.ndarray, params: MatchParams) -> np.ndarray:
     """Per-pixel oriented-gradient descriptors as planes, shape (8, H, W), float32."""
@@ -150,11 +143,6 @@ def _descriptor_planes(image: np.ndarray, params: MatchParams) -> np.ndarray:
         out[k] = proj
     np.power(out, params.desc_power, out=out)
     return out
-
-
-def pixel_descriptors(image: np.ndarray, params: MatchParams) -> np.ndarray:
-    """Per-pixel oriented-gradient descriptors, shape (H, W, 8), float32."""
-    return np.moveaxis(_descriptor_planes(image, params), 0, -1)
 
 
 def _patch_norms(planes: np.ndarray) -> np.ndarray:
@@ -608,13 +596,21 @@ def deep_matching(
     Parameters
     ----------
     reference, current : ndarray (H, W), uint8 or float32
+        Grey images of one shape.
     params : MatchParams, optional
 
     Returns
     -------
     MatchGrid
         One match per atomic patch (``valid`` marks the verified ones).
+
+    Raises
+    ------
+    ValueError
+        If the images differ in shape, are not 2-D or not uint8 / float32 (the numba
+        kernels do not bounds-check), or ``params.downscale`` is not a positive integer.
     """
+    check_grey_pair(reference, current)
     params = params or MatchParams()
     if params.downscale < 1 or int(params.downscale) != params.downscale:
         raise ValueError(f"downscale must be a positive integer, got {params.downscale!r}")

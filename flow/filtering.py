@@ -36,6 +36,13 @@ import numpy as np
 
 #: Bytes of float64 working arrays one block of frames may occupy.
 CHUNK_BYTES = 32 << 20
+#: Eq. (10) default: a POI whose peak |d| is below this fraction of the median over POIs
+#: of that peak counts as background (the paper thresholds "with its median value"; half of
+#: it keeps the parts of a member that move less than the typical POI).
+THRESHOLD_RATIO = 0.5
+#: Eq. (11) default: a POI whose mean correlation with the other POIs is below this moves
+#: on its own (an outlier), not with the structure.
+MCR_THRESHOLD = 0.5
 
 
 @dataclass
@@ -49,8 +56,6 @@ class FilterResult:
     mcr: np.ndarray  # (P,) mean cross-correlation (NaN where not computed)
     threshold_px: float
     notes: list[str] = field(default_factory=list)
-    offset_x: np.ndarray | None = None  # (P,) removed offsets, px
-    offset_y: np.ndarray | None = None
 
 
 def block_rows(n_frames: int, n_points: int, *, copies: int = 8) -> Iterator[slice]:
@@ -96,11 +101,6 @@ def reference_offset(d: np.ndarray, reference_row: int = 0) -> np.ndarray:
     return offset
 
 
-def remove_offset(d: np.ndarray, reference_row: int = 0) -> np.ndarray:
-    """Subtract each POI's value at the reference frame (NaN-safe: first finite value)."""
-    return np.asarray(d, np.float64) - reference_offset(d, reference_row)
-
-
 def _zscore(block: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
     centred = np.where(np.isfinite(block), block - mean, 0.0)
     return np.divide(centred, std, out=np.zeros_like(centred), where=std > 0)
@@ -137,25 +137,10 @@ def _mcr_streaming(blocks: Callable[[], Iterator[np.ndarray]], n_points: int) ->
     return mcr / (n_samples * (n_points - 1))
 
 
-def mean_cross_correlation(tracks: np.ndarray) -> np.ndarray:
-    """Eq. (11): mean over ``j != m`` of the correlation of track ``m`` with track ``j``.
-
-    ``tracks`` is ``(T, P)`` (axes may be stacked along T); NaNs count as the
-    track's mean.
-    """
-    n_samples, n_points = tracks.shape
-
-    def blocks() -> Iterator[np.ndarray]:
-        for rows in block_rows(n_samples, n_points):
-            yield np.asarray(tracks[rows], np.float64)
-
-    return _mcr_streaming(blocks, n_points)
-
-
 def filter_and_average(dx: np.ndarray, dy: np.ndarray, *, valid: np.ndarray | None = None,
                        reference_row: int = 0, offset: tuple[np.ndarray, np.ndarray] | None = None,
-                       threshold_ratio: float = 0.5, threshold_px: float | None = None,
-                       mcr_threshold: float = 0.5, average: str = "mean",
+                       threshold_ratio: float = THRESHOLD_RATIO, threshold_px: float | None = None,
+                       mcr_threshold: float = MCR_THRESHOLD, average: str = "mean",
                        enabled: bool = True) -> FilterResult:
     """Filter POI tracks with eq. (10)-(11) and average them with eq. (12).
 
@@ -223,7 +208,7 @@ def filter_and_average(dx: np.ndarray, dy: np.ndarray, *, valid: np.ndarray | No
             notes.append(f"eq. (11) removed every POI (max mcr {np.nanmax(mcr):.2f}); kept eq. (10) survivors")
             kept = kept_threshold.copy()
     out_x, out_y = average_tracks(dx, dy, kept, (offset_x, offset_y), average=average)
-    return FilterResult(out_x, out_y, kept, kept_threshold, mcr, threshold, notes, offset_x, offset_y)
+    return FilterResult(out_x, out_y, kept, kept_threshold, mcr, threshold, notes)
 
 
 def average_tracks(dx: np.ndarray, dy: np.ndarray, kept: np.ndarray,

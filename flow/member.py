@@ -71,6 +71,9 @@ import cv2
 import numpy as np
 from numba import njit
 
+from flow.checks import check_shape
+from flow.robust import MAD_TO_SIGMA
+
 # Visible background pixels the hidden ones under the outline are predicted from.
 N_PREDICT = 3
 # Farthest pixel (from the first visible background pixel) a predictor is made for.
@@ -144,7 +147,7 @@ def _grow(reference: np.ndarray, mask: np.ndarray, params: MemberParams) -> np.n
     """The mask grown through member-like pixels, at most ``grow_px`` beyond it."""
     values = reference[mask]
     centre = float(np.median(values))
-    spread = 1.4826 * float(np.median(np.abs(values - centre)))
+    spread = MAD_TO_SIGMA * float(np.median(np.abs(values - centre)))
     # One-sided differences, the smaller of each pair: a member pixel next to its
     # outline keeps a small one (towards the member), a textured background pixel
     # has large ones on both sides.
@@ -332,7 +335,7 @@ def _irls(A, d, w0, prior, lam, tukey_c, min_scale):
                     H[p, q] += api * A[i, q]
         theta = np.linalg.solve(H, b)
         z = (d - A @ theta) * root
-        scale = max(1.4826 * np.median(np.abs(z - np.median(z))), min_scale)
+        scale = max(MAD_TO_SIGMA * np.median(np.abs(z - np.median(z))), min_scale)
         for i in range(n):
             u = z[i] / (tukey_c * scale)
             weights[i] = w0[i] * (1.0 - u * u) ** 2 if abs(u) < 1.0 else 0.0
@@ -645,7 +648,14 @@ class MemberEdges:
         ``prior_uv``: ``(n_profiles, 2)`` dense-flow displacement at each profile's outline,
         the starting guess and the weak prior. ``gain``: the frame's brightness relative to
         the reference (lighting changes), for the background predictor's mean.
+        Raises ``ValueError`` naming the shapes if ``current`` is not the reference's shape or
+        ``prior_uv`` not ``(n_profiles, 2)`` (the numba kernels do not bounds-check).
         """
+        check_shape("current", current, self.shape)
+        if np.shape(prior_uv) != (self.n_profiles, 2):
+            raise ValueError(f"prior_uv has shape {np.shape(prior_uv)} but the member has "
+                             f"{self.n_profiles} edge profiles: prior_uv must have shape "
+                             f"({self.n_profiles}, 2)")
         empty = MemberFit(False, np.zeros(N_PARAMS), np.full((N_PARAMS, N_PARAMS), np.nan), 0,
                           self.n_profiles, float("nan"))
         if self.n_profiles < self.params.min_profiles:
@@ -731,7 +741,7 @@ class MemberEdges:
         if used < self.params.min_profiles:
             return None
         r = (d - A @ theta)[kept]
-        spread = 1.4826 * float(np.median(np.abs(r - np.median(r))))  # px: how well the outlines agree
+        spread = MAD_TO_SIGMA * float(np.median(np.abs(r - np.median(r))))  # px: how well the outlines agree
         return _Solution(theta, A, weights, lam, used, scale, spread, z, usable)
 
     def _covariance(self, solution: _Solution) -> np.ndarray:

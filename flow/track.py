@@ -35,6 +35,8 @@ from tqdm import tqdm
 
 from flow.background import Background
 from flow.filtering import (
+    MCR_THRESHOLD,
+    THRESHOLD_RATIO,
     FilterResult,
     block_rows,
     filter_and_average,
@@ -42,6 +44,7 @@ from flow.filtering import (
     row_blocks,
 )
 from flow.io import FrameSource, InputError
+from flow.robust import MAD_TO_SIGMA
 
 Undistort = Callable[[np.ndarray], np.ndarray] | None
 
@@ -676,8 +679,31 @@ def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
                   source.truncated, source.header_frames, image_digest(reference))
 
 
-def flag_invalid(residual: np.ndarray, *, k_mad: float = 8.0, ratio: float = 2.5,
-                 floor: float = 3.0) -> tuple[np.ndarray, float]:
+# Quality thresholds of :func:`measure`, the defaults of the flags it calls.
+# A frame's photometric residual (mean |grey difference| at the POIs) counts as a blocked
+# view only far out in the tail of the clip's own residuals: RESIDUAL_K_MAD robust sigmas
+# above their median (noise and codec flicker stay well inside), RESIDUAL_RATIO times the
+# median (a steady clip's tiny MAD alone would flag ordinary variation) and RESIDUAL_FLOOR
+# grey levels (below that it is sensor noise whatever the baseline).
+RESIDUAL_K_MAD = 8.0
+RESIDUAL_RATIO = 2.5
+RESIDUAL_FLOOR = 3.0
+# The kept POIs scatter as if the flow failed (an occluder as bright as the structure):
+# SPREAD_RATIO times their median spread, and at least SPREAD_FLOOR_PX px, so that POIs
+# agreeing to hundredths of a pixel are not flagged for a tenth.
+SPREAD_RATIO = 4.0
+SPREAD_FLOOR_PX = 1.5
+# The band within which a POI agrees with its frame's median (poi_kept_frac): BAND_RATIO
+# times the median spread of the valid frames, at least BAND_FLOOR_PX px, widened to
+# BAND_RELATIVE of the median displacement so that a member that rotates or bends within
+# the mask keeps its POIs at large amplitude.
+BAND_RATIO = 3.0
+BAND_FLOOR_PX = 0.5
+BAND_RELATIVE = 0.25
+
+
+def flag_invalid(residual: np.ndarray, *, k_mad: float = RESIDUAL_K_MAD, ratio: float = RESIDUAL_RATIO,
+                 floor: float = RESIDUAL_FLOOR) -> tuple[np.ndarray, float]:
     """Frames whose photometric residual is far above its robust baseline (view blocked).
 
     A frame is invalid when its residual exceeds ``max(median + k_mad * sigma,
@@ -689,7 +715,7 @@ def flag_invalid(residual: np.ndarray, *, k_mad: float = 8.0, ratio: float = 2.5
     if finite.size == 0:
         return np.zeros(residual.shape, bool), float("nan")
     median = float(np.median(finite))
-    sigma = 1.4826 * float(np.median(np.abs(finite - median)))
+    sigma = MAD_TO_SIGMA * float(np.median(np.abs(finite - median)))
     threshold = max(median + k_mad * sigma, ratio * median, floor)
     return np.isfinite(residual) & (residual <= threshold), threshold
 
@@ -721,11 +747,11 @@ def poi_spread(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
     with _NanQuiet():
         mad_x = np.nanmedian(np.abs(dx - np.nanmedian(dx, axis=1, keepdims=True)), axis=1)
         mad_y = np.nanmedian(np.abs(dy - np.nanmedian(dy, axis=1, keepdims=True)), axis=1)
-    return 1.4826 * np.hypot(mad_x, mad_y)
+    return MAD_TO_SIGMA * np.hypot(mad_x, mad_y)
 
 
 def consistent_fraction(dx: np.ndarray, dy: np.ndarray, *, band_px: float,
-                        relative: float = 0.25) -> np.ndarray:
+                        relative: float = BAND_RELATIVE) -> np.ndarray:
     """Per frame, the fraction of POIs whose displacement is finite and agrees with the frame's median.
 
     A POI agrees when its 2-D distance from the frame's median displacement is
@@ -744,7 +770,8 @@ def consistent_fraction(dx: np.ndarray, dy: np.ndarray, *, band_px: float,
     return agree.sum(axis=1) / dx.shape[1]
 
 
-def flag_incoherent(spread: np.ndarray, *, ratio: float = 4.0, floor_px: float = 1.5) -> np.ndarray:
+def flag_incoherent(spread: np.ndarray, *, ratio: float = SPREAD_RATIO,
+                    floor_px: float = SPREAD_FLOOR_PX) -> np.ndarray:
     """Frames whose POIs disagree far more than usual: ``spread > max(ratio * median, floor_px)``.
 
     Catches an occluder whose brightness happens to match the structure's
@@ -768,12 +795,12 @@ def _per_frame(tracks: Tracks, columns: np.ndarray | None,
 
 
 def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean",
-            threshold_ratio: float = 0.5, threshold_px: float | None = None,
-            mcr_threshold: float = 0.5, residual_ratio: float = 2.5,
-            residual_k_mad: float = 8.0, residual_floor: float = 3.0,
-            spread_ratio: float = 4.0, spread_floor_px: float = 1.5,
-            check_coherence: bool = True, max_rounds: int = 3, band_ratio: float = 3.0,
-            band_floor_px: float = 0.5, band_relative: float = 0.25) -> Measurement:
+            threshold_ratio: float = THRESHOLD_RATIO, threshold_px: float | None = None,
+            mcr_threshold: float = MCR_THRESHOLD, residual_ratio: float = RESIDUAL_RATIO,
+            residual_k_mad: float = RESIDUAL_K_MAD, residual_floor: float = RESIDUAL_FLOOR,
+            spread_ratio: float = SPREAD_RATIO, spread_floor_px: float = SPREAD_FLOOR_PX,
+            check_coherence: bool = True, max_rounds: int = 3, band_ratio: float = BAND_RATIO,
+            band_floor_px: float = BAND_FLOOR_PX, band_relative: float = BAND_RELATIVE) -> Measurement:
     """Quality flags, eq. (10)-(12) filtering and averaging of a run's tracks.
 
     A frame is invalid when its photometric residual is far above its baseline
@@ -828,7 +855,7 @@ def _standard_error(block: np.ndarray) -> np.ndarray:
     with _NanQuiet():
         n = np.isfinite(block).sum(axis=1)
         mad = np.nanmedian(np.abs(block - np.nanmedian(block, axis=1, keepdims=True)), axis=1)
-        return np.where(n >= 2, 1.4826 * mad / np.sqrt(np.maximum(n, 1)), np.nan)
+        return np.where(n >= 2, MAD_TO_SIGMA * mad / np.sqrt(np.maximum(n, 1)), np.nan)
 
 
 def iter_rows(result: Measurement, mm_per_px: float, region: int | None = None) -> Iterable[dict[str, Any]]:

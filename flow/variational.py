@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 from numba import njit
 
+from flow.checks import check_grey_pair, check_shape
 from flow.params import check_fields
 
 
@@ -776,13 +777,6 @@ def _level_sizes(
     return sizes
 
 
-def _resize_flow(flow: np.ndarray, h: int, w: int) -> np.ndarray:
-    """Flow (H, W, 2) resampled to (h, w, 2) and rescaled to the new pixel size."""
-    out = cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
-    out *= np.array([w / flow.shape[1], h / flow.shape[0]], np.float32)
-    return out
-
-
 class _Pyramid:
     """Area-averaged versions of an image at any scale.
 
@@ -851,7 +845,6 @@ def refine(
     current: np.ndarray,
     params: VariationalParams,
     *,
-    init_flow: np.ndarray | None = None,
     match_flow: np.ndarray | None = None,
     match_weight: np.ndarray | None = None,
     workspace: Workspace | None = None,
@@ -860,11 +853,9 @@ def refine(
 
     Parameters
     ----------
-    reference, current : ndarray (H, W)
-        Grey images (any range; scaled to [0, 1] internally using 255 for uint8).
+    reference, current : ndarray (H, W), uint8 or float32
+        Grey images of one shape (any range; scaled to [0, 1] internally using 255 for uint8).
     params : VariationalParams
-    init_flow : ndarray (H, W, 2), optional
-        Start flow at the coarsest level (resized down).
     match_flow, match_weight : ndarray (H, W, 2) and (H, W), optional
         Dense rasterised matches ``w'`` and their weights ``c * phi`` in [0, 1].
     workspace : Workspace, optional
@@ -873,7 +864,18 @@ def refine(
     Returns
     -------
     ndarray (H, W, 2) float32
+
+    Raises
+    ------
+    ValueError
+        If the images differ in shape, are not 2-D or not uint8 / float32, or the matches do
+        not have the reference's shape (the numba kernels do not bounds-check).
     """
+    check_grey_pair(reference, current)
+    if match_flow is not None:
+        check_shape("match_flow", match_flow, reference.shape, (2,))
+    if match_weight is not None:
+        check_shape("match_weight", match_weight, reference.shape)
     ws = workspace if workspace is not None else Workspace()
     scale_in = 1.0 / 255.0 if reference.dtype == np.uint8 else 1.0
     im1 = reference.astype(np.float32) * np.float32(scale_in)
@@ -894,10 +896,7 @@ def refine(
     levels = _level_sizes(height, width, params.eta, params.min_size)
     use_matches = match_flow is not None and match_weight is not None and params.beta > 0
     h0, w0, _ = levels[-1]
-    if init_flow is not None:
-        flow = _resize_flow(np.ascontiguousarray(init_flow, dtype=np.float32), h0, w0)
-    else:
-        flow = np.zeros((h0, w0, 2), np.float32)
+    flow = np.zeros((h0, w0, 2), np.float32)
     pyr1, pyr2 = _Pyramid(im1), _Pyramid(im2)
     if use_matches:
         matches = np.ascontiguousarray(match_flow, dtype=np.float32)

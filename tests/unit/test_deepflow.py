@@ -181,6 +181,21 @@ def test_same_input_gives_the_same_bytes():
     assert first.tobytes() == again.tobytes()
 
 
+def test_refine_refuses_mismatched_arrays():
+    params = variational.VariationalParams()
+    reference = np.zeros((40, 50), np.float32)
+    with pytest.raises(ValueError, match=r"\(40, 60\).*\(40, 50\)"):
+        variational.refine(reference, np.zeros((40, 60), np.float32), params)
+    with pytest.raises(ValueError, match="uint16"):
+        variational.refine(reference.astype(np.uint16), reference.astype(np.uint16), params)
+    with pytest.raises(ValueError, match=r"\(20, 25, 2\).*\(40, 50\)"):
+        variational.refine(reference, reference, params, match_flow=np.zeros((20, 25, 2), np.float32),
+                           match_weight=np.zeros((40, 50), np.float32))
+    with pytest.raises(ValueError, match=r"\(40, 51\).*\(40, 50\)"):
+        variational.refine(reference, reference, params, match_flow=np.zeros((40, 50, 2), np.float32),
+                           match_weight=np.zeros((40, 51), np.float32))
+
+
 def test_registry_and_parameters():
     # Importing the module registers both names (flow.methods imports it too).
     assert {"deepflow", "deepmatching"} <= set(registry.available())

@@ -10,7 +10,7 @@ import pytest
 
 import flow.deepmatching as dm
 import flow.methods.deepflow as deepflow_module
-from flow.deepmatching import MatchParams, deep_matching, densify, pixel_descriptors
+from flow.deepmatching import MatchParams, deep_matching, densify
 
 sys.path.insert(0, str(Path(__file__).parent))  # shared synthetic pairs
 from _deepflow_synth import epe, rigid_flow, textured, to_u8, visible, warp_forward  # noqa: E402
@@ -27,27 +27,24 @@ def large_pair():
 
 def test_descriptors_have_eight_rectified_orientations():
     image = textured(32, 48, seed=1)
-    desc = pixel_descriptors(image, MatchParams())
-    assert desc.shape == (32, 48, 8) and desc.dtype == np.float32
+    desc = dm._descriptor_planes(image, MatchParams())
+    assert desc.shape == (8, 32, 48) and desc.dtype == np.float32
     assert (desc >= 0).all()
 
 
 def test_matches_within_two_pixels(large_pair):
     reference, current, truth = large_pair
     grid = deep_matching(reference, current, MatchParams(ngh_rad=64))
-    matches = grid.as_array()
+    ok = grid.valid
     height, width = reference.shape
-    xi = np.clip(np.rint(matches[:, 0]).astype(int), 0, width - 1)
-    yi = np.clip(np.rint(matches[:, 1]).astype(int), 0, height - 1)
-    err = np.hypot(
-        matches[:, 2] - (matches[:, 0] + truth[yi, xi, 0]),
-        matches[:, 3] - (matches[:, 1] + truth[yi, xi, 1]),
-    )
+    xi = np.clip(np.rint(grid.x[ok]).astype(int), 0, width - 1)
+    yi = np.clip(np.rint(grid.y[ok]).astype(int), 0, height - 1)
+    err = np.hypot(grid.dx[ok] - truth[yi, xi, 0], grid.dy[ok] - truth[yi, xi, 1])
     within = float((err <= 2.0).mean())
     print(
-        f"{len(matches)} verified matches of {grid.valid.size} patches; {100 * within:.1f} % within 2 px"
+        f"{int(ok.sum())} verified matches of {ok.size} patches; {100 * within:.1f} % within 2 px"
     )
-    assert len(matches) >= 0.5 * grid.valid.size
+    assert ok.sum() >= 0.5 * ok.size
     assert within >= 0.90
     assert ((grid.score >= 0) & (grid.score <= 1)).all()
 
@@ -117,3 +114,13 @@ def test_bad_parameters():
         deep_matching(image, image, MatchParams(downscale=0))
     with pytest.raises(ValueError, match="interpolation"):
         deepflow_module.DeepMatchingDense(interpolation="cubic")
+
+
+def test_mismatched_or_unsupported_images_raise_before_the_kernels():
+    image = np.zeros((64, 64), np.uint8)
+    with pytest.raises(ValueError, match=r"\(64, 48\).*\(64, 64\)"):
+        deep_matching(image, np.zeros((64, 48), np.uint8))
+    with pytest.raises(ValueError, match="ndim 3"):
+        deep_matching(image, np.zeros((64, 64, 3), np.uint8))
+    with pytest.raises(ValueError, match="float64"):
+        deep_matching(image, np.zeros((64, 64)))

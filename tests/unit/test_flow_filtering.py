@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flow.filtering import filter_and_average, mean_cross_correlation, remove_offset
+from flow.filtering import filter_and_average, reference_offset
 from flow.track import flag_invalid
 
 
@@ -61,18 +61,20 @@ def test_median_average_and_nan_tracks() -> None:
         filter_and_average(dx, dy, average="mode")
 
 
-def test_mean_cross_correlation_matches_the_full_matrix() -> None:
+def test_mcr_matches_the_full_correlation_matrix() -> None:
     rng = np.random.default_rng(1)
-    tracks = rng.normal(size=(50, 8)) + np.linspace(0, 3, 50)[:, None]
-    full = np.corrcoef(tracks.T)
+    dx = rng.normal(size=(50, 8)) + np.linspace(0, 3, 50)[:, None]
+    dy = rng.normal(size=(50, 8))
+    # Eq. (11) correlates both axes, each offset-free, as samples of one track.
+    full = np.corrcoef(np.vstack([dx - dx[0], dy - dy[0]]).T)
     expected = (full.sum(axis=1) - 1) / 7
-    assert np.allclose(mean_cross_correlation(tracks), expected)
+    result = filter_and_average(dx, dy, threshold_ratio=0.0, mcr_threshold=-1.0)
+    assert np.allclose(result.mcr, expected)
 
 
-def test_remove_offset_uses_reference_row() -> None:
+def test_reference_offset_takes_the_first_finite_value() -> None:
     d = np.array([[1.0, np.nan], [2.0, 5.0], [3.0, 6.0]])
-    out = remove_offset(d, 0)
-    assert np.allclose(out[:, 0], [0, 1, 2]) and np.allclose(out[1:, 1], [0, 1])
+    assert np.allclose(reference_offset(d, 0), [1.0, 5.0])
 
 
 def test_flag_invalid_catches_a_blocked_view() -> None:

@@ -70,3 +70,14 @@ def test_arguments_are_checked():
         MemberEdges.from_reference(np.zeros((20, 30)), np.ones((20, 31), bool))
     with pytest.raises(ValueError, match="fewer than 3"):
         MemberEdges.from_reference(np.zeros((20, 30)), np.zeros((20, 30), bool))
+
+
+def test_fit_refuses_a_frame_or_prior_of_another_shape():
+    clip = make_clip(seed=4, frames=2)
+    edges = MemberEdges.from_reference(clip.frames[0], clip.mask)
+    height, width = clip.frames[0].shape
+    prior = np.zeros((edges.n_profiles, 2))
+    with pytest.raises(ValueError, match=rf"\({height}, {width - 1}\).*\({height}, {width}\)"):
+        edges.fit(clip.frames[1][:, 1:], prior)
+    with pytest.raises(ValueError, match=rf"\({edges.n_profiles + 1}, 2\).*{edges.n_profiles} edge"):
+        edges.fit(clip.frames[1], np.zeros((edges.n_profiles + 1, 2)))
