@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 
 from flow.io import as_uint8
-from flow.registry import DenseMethod, register
+from flow.methods.base import DenseMethod
+from flow.registry import register
 
 
 def _has_optflow() -> bool:

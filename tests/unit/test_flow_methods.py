@@ -7,6 +7,7 @@ import pytest
 
 from flow import registry
 from flow.io import FrameSource
+from flow.methods.base import CROP_MARGIN_PX
 from flow.methods.klt import KLT
 from flow.track import measure, track_dense, track_sparse
 
@@ -144,7 +145,7 @@ def test_dense_methods_solve_only_the_window_they_are_asked_for(name: str) -> No
     solved = np.isfinite(flow[..., 0])
     rows, cols = np.nonzero(solved)
     margin = method.window_margin(reference.shape)
-    assert margin >= registry.CROP_MARGIN_PX
+    assert margin >= CROP_MARGIN_PX
     assert (rows.min(), rows.max() + 1) == (max(150 - margin, 0), min(170 + margin, 320))
     assert (cols.min(), cols.max() + 1) == (max(200 - margin, 0), min(240 + margin, 480))
     assert solved.sum() == (np.ptp(rows) + 1) * (np.ptp(cols) + 1) < 0.8 * reference.size
