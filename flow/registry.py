@@ -1,69 +1,78 @@
 """Registry of displacement-measurement methods (after ptlflow's ``register_model``/``get_model``).
 
-The methods' interface is in :mod:`flow.methods.base`.
+A method module declares its methods with ``@register(name)`` from :mod:`flow.methods.base`
+(the base classes' module); this module loads the built-in method modules on first use and
+answers for all of them: :func:`available`, :func:`get_method`, and :func:`unavailable` for
+those a missing dependency keeps out. Imports go one way: registry -> methods -> base and
+registry -> base; nothing imports the registry back, so no import order can meet a
+half-initialised module.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+import functools
+import importlib
 from typing import Any
 
+from flow.methods import base
+from flow.methods.base import register, register_unavailable
 
-@dataclass(frozen=True)
-class _Entry:
-    factory: Callable[..., Any]
-    kind: str
-    summary: str
+__all__ = ["available", "describe", "get_method", "kinds", "register", "register_unavailable",
+           "unavailable"]
 
-
-_REGISTRY: dict[str, _Entry] = {}
-
-
-def register(name: str) -> Callable[[type], type]:
-    """Class decorator adding a method to the registry under ``name``."""
-
-    def decorate(cls: type) -> type:
-        if name in _REGISTRY:
-            raise ValueError(f"method {name!r} is registered twice")
-        cls.name = name
-        _REGISTRY[name] = _Entry(cls, getattr(cls, "kind", "dense"), getattr(cls, "summary", ""))
-        return cls
-
-    return decorate
+# The built-in method modules, loaded in this order on first use (a command that asks for no
+# method does not import them).
+_BUILTIN_MODULES = ("flow.methods.klt", "flow.methods.opencv_dense")
+# Built-in modules whose import may fail where a dependency is missing, with the methods they
+# hold: those are then unavailable, with the import error as the reason.
+_OPTIONAL_MODULES = {"flow.methods.deepflow": ("deepflow", "deepflow-dense", "deepmatching")}
 
 
+@functools.cache
 def _load_builtin_methods() -> None:
-    # Importing the package registers every built-in method exactly once.
-    import flow.methods  # noqa: F401
+    for module in _BUILTIN_MODULES:
+        importlib.import_module(module)
+    for module, names in _OPTIONAL_MODULES.items():
+        try:
+            importlib.import_module(module)
+        except ImportError as err:
+            for name in names:
+                register_unavailable(name, str(err))
 
 
 def available() -> list[str]:
     """Names of all registered methods, sorted."""
     _load_builtin_methods()
-    return sorted(_REGISTRY)
+    return sorted(base._REGISTRY)
+
+
+def unavailable() -> dict[str, str]:
+    """``{name: why it cannot run here}`` of the methods a missing dependency keeps out (an
+    OpenCV build without contrib's ``optflow``, say), in the order they were found."""
+    _load_builtin_methods()
+    return dict(base._UNAVAILABLE)
 
 
 def describe() -> dict[str, str]:
     """``{name: one-line summary}`` of all registered methods."""
     _load_builtin_methods()
-    return {name: _REGISTRY[name].summary for name in sorted(_REGISTRY)}
+    return {name: base._REGISTRY[name].summary for name in sorted(base._REGISTRY)}
 
 
 def kinds() -> dict[str, str]:
     """``{name: kind}`` of all registered methods: ``"dense"`` (a flow field against the
     reference frame, frames independent) or ``"sparse"`` (features followed frame to frame)."""
     _load_builtin_methods()
-    return {name: _REGISTRY[name].kind for name in sorted(_REGISTRY)}
+    return {name: base._REGISTRY[name].kind for name in sorted(base._REGISTRY)}
 
 
 def get_method(name: str, **params: Any) -> Any:
     """Instantiate the method registered as ``name`` with keyword parameters."""
     _load_builtin_methods()
     try:
-        entry = _REGISTRY[name]
+        entry = base._REGISTRY[name]
     except KeyError:
         raise ValueError(
-            f"unknown method {name!r}; available: {', '.join(sorted(_REGISTRY))}"
+            f"unknown method {name!r}; available: {', '.join(sorted(base._REGISTRY))}"
         ) from None
     return entry.factory(**params)

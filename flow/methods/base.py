@@ -1,4 +1,4 @@
-"""What every displacement-measurement method is: the base classes.
+"""What every displacement-measurement method is: the base classes, and ``@register`` to declare one.
 
 Every tracker is an interchangeable part behind one interface (after OpenCV's
 ``DenseOpticalFlow.calc`` and ptlflow's ``BaseModel``):
@@ -9,12 +9,15 @@ Every tracker is an interchangeable part behind one interface (after OpenCV's
 * a *sparse* method follows its own features through the sequence.
 
 The reference-frame driver, POI sampling, filtering (paper eq. 10-12) and
-averaging are shared steps outside the methods. This module imports nothing of
-``flow``: a method module imports it, and :mod:`flow.registry` finds the methods.
+averaging are shared steps outside the methods. A method module imports this module
+(the base classes and ``@register``) and nothing else of the methods' plumbing;
+:mod:`flow.registry` loads the methods and answers for them.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -185,3 +188,37 @@ class SparseMethod(Method):
     def step(self, current: np.ndarray) -> np.ndarray:
         """Displacement ``(N, 2)`` float32 of every feature from the reference to ``current``."""
         raise NotImplementedError
+
+
+# Declaring a method. The table lives here, next to the base classes, so that a method module
+# imports this module only: flow.registry loads the method modules and reads the table, and
+# nothing imports the registry back.
+
+@dataclass(frozen=True)
+class _Entry:
+    factory: Callable[..., Any]
+    kind: str
+    summary: str
+
+
+_REGISTRY: dict[str, _Entry] = {}
+_UNAVAILABLE: dict[str, str] = {}
+
+
+def register(name: str) -> Callable[[type], type]:
+    """Class decorator adding a method to the registry under ``name``."""
+
+    def decorate(cls: type) -> type:
+        if name in _REGISTRY:
+            raise ValueError(f"method {name!r} is registered twice")
+        cls.name = name
+        _REGISTRY[name] = _Entry(cls, getattr(cls, "kind", "dense"), getattr(cls, "summary", ""))
+        return cls
+
+    return decorate
+
+
+def register_unavailable(name: str, reason: str) -> None:
+    """Record that the method ``name`` cannot run here and why (a dependency is missing), for
+    :func:`flow.registry.unavailable`."""
+    _UNAVAILABLE[name] = reason

@@ -21,8 +21,7 @@ import numpy as np
 
 from flow.deepmatching import MatchParams, deep_matching, densify, search_radius
 from flow.member import MemberEdges
-from flow.methods.base import CROP_MARGIN_PX, DenseMethod, check_pair
-from flow.registry import register
+from flow.methods.base import CROP_MARGIN_PX, DenseMethod, check_pair, register
 from flow.variational import VariationalParams, Workspace, refine
 
 _MATCH_FIELDS = {f.name for f in dataclasses.fields(MatchParams)}

@@ -22,8 +22,7 @@ import cv2
 import numpy as np
 
 from flow.io import as_uint8
-from flow.methods.base import SparseMethod
-from flow.registry import register
+from flow.methods.base import SparseMethod, register
 
 _KLT_DEFAULTS = dict(detector="harris", max_corners=200, quality_level=0.01, min_distance=5,
                      block_size=5, window=21, levels=3, use_mask=False)
