@@ -53,7 +53,7 @@ def run(folder: Path, name: str, n_frames: int, jobs: int) -> float:
     mask = np.zeros((ROI.height, ROI.width), bool)
     mask[100:300, 50:750] = True
     poi_xy = np.stack(np.nonzero(mask)[::-1], axis=1)[::4].astype(np.int32)
-    if registry._REGISTRY[name].kind == "sparse":
+    if registry.kinds()[name] == "sparse":
         tracks = track_sparse(source, registry.get_method(name), mask, max_frames=n_frames)
     else:
         tracks = track_dense(source, lambda: registry.get_method(name), poi_xy, jobs=jobs, max_frames=n_frames)
@@ -95,7 +95,7 @@ def main() -> None:
             n_frames = min(args.frames, SLOW.get(name, args.frames))
             run(folder, name, 2, 1)  # warm-up: numba compiles, caches fill
             default = run(folder, name, n_frames, 1)
-            if registry._REGISTRY[name].kind == "sparse":
+            if registry.kinds()[name] == "sparse":
                 print(f"{name:<16} {n_frames:>6} {default:>12.2f} {'(sequential: frame to frame)':>33}", flush=True)
                 continue
             with one_thread_per_job():

@@ -2,7 +2,7 @@
 
 Without ``--roi`` a user's 720p or 4K video is decoded whole, but each dense method solves the
 flow only on the window the driver reads (the POIs' bounding box plus the margin the method
-needs: ``flow.registry.CROP_MARGIN_PX``, or the matching's search radius for `deepflow` and
+needs: ``flow.methods.base.CROP_MARGIN_PX``, or the matching's search radius for `deepflow` and
 `deepmatching`; see ``DenseMethod``). This benchmark measures what that saves, as a user runs
 it: a 1280x720 H.264 clip of a low-texture bar over a textured wall (the tests' generator,
 ``tests/unit/_lowtex_clip.py``, exact truth), POIs in a 100x50 px patch of the bar, each

@@ -47,10 +47,9 @@ def _default_method() -> tuple[str, str | None]:
     names = registry.available()
     if "deepflow" in names:
         return "deepflow", None
-    from flow import methods
-
+    reason = registry.unavailable().get("deepflow")
     return "deepflow-opencv", ("clean-room `deepflow` is not available"
-                               + (f" ({methods.DEEPFLOW_IMPORT_ERROR})" if methods.DEEPFLOW_IMPORT_ERROR else "")
+                               + (f" ({reason})" if reason else "")
                                + "; using deepflow-opencv")
 
 
@@ -241,14 +240,8 @@ def cmd_methods(args: argparse.Namespace) -> int:
     kinds = registry.kinds()
     for name, summary in registry.describe().items():
         print(f"{name:<{width}}  [{kinds[name]}]  {summary}")
-    import cv2
-
-    if "tvl1" not in kinds:
-        print(f"(tvl1 unavailable: this OpenCV {cv2.__version__} build lacks optflow.DualTVL1OpticalFlow)")
-    from flow import methods
-
-    if methods.DEEPFLOW_IMPORT_ERROR:
-        print(f"(deepflow unavailable: {methods.DEEPFLOW_IMPORT_ERROR})")
+    for name, reason in registry.unavailable().items():
+        print(f"({name} unavailable: {reason})")
     return 0
 
 

@@ -1,225 +1,78 @@
-"""Registry of displacement-measurement methods.
+"""Registry of displacement-measurement methods (after ptlflow's ``register_model``/``get_model``).
 
-Every tracker is an interchangeable part behind one interface (after OpenCV's
-``DenseOpticalFlow.calc`` and ptlflow's ``register_model``/``get_model``):
-
-* a *dense* method maps ``(reference, current)`` grey images to a flow field
-  ``(H, W, 2)`` float32 holding ``(dx, dy)`` in pixels such that
-  ``reference[y, x]`` is seen at ``current[y + dy, x + dx]``;
-* a *sparse* method (KLT) follows its own features through the sequence.
-
-The reference-frame driver, POI sampling, filtering (paper eq. 10-12) and
-averaging are shared steps outside the methods.
+A method module declares its methods with ``@register(name)`` from :mod:`flow.methods.base`
+(the base classes' module); this module loads the built-in method modules on first use and
+answers for all of them: :func:`available`, :func:`get_method`, and :func:`unavailable` for
+those a missing dependency keeps out. Imports go one way: registry -> methods -> base and
+registry -> base; nothing imports the registry back, so no import order can meet a
+half-initialised module.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+import functools
+import importlib
 from typing import Any
 
-import numpy as np
+from flow.methods import base
+from flow.methods.base import register, register_unavailable
+
+__all__ = ["available", "describe", "get_method", "kinds", "register", "register_unavailable",
+           "unavailable"]
+
+# The built-in method modules, loaded in this order on first use (a command that asks for no
+# method does not import them).
+_BUILTIN_MODULES = ("flow.methods.klt", "flow.methods.opencv_dense")
+# Built-in modules whose import may fail where a dependency is missing, with the methods they
+# hold: those are then unavailable, with the import error as the reason.
+_OPTIONAL_MODULES = {"flow.methods.deepflow": ("deepflow", "deepflow-dense", "deepmatching")}
 
 
-class Method:
-    """What every registered method shares: its name, summary, kind and parameters.
-
-    Subclasses set ``summary`` (one line for ``refflow methods``); the registry
-    sets ``name``. Parameters are keyword-only constructor arguments with the
-    published defaults; :meth:`params` reports them.
-    """
-
-    kind = ""
-    name: str = ""
-    summary: str = ""
-    # False for methods built on OpenCV functions that take 8-bit images only: they see
-    # 10-16-bit data rounded to 8 bits (``flow.io.as_uint8``).
-    full_depth = True
-
-    def __init__(self, **params: Any) -> None:
-        self._params = dict(params)
-
-    def params(self) -> dict[str, Any]:
-        """Parameters of this instance, for the JSON sidecar."""
-        return dict(self._params)
-
-
-# A dense method solves the flow on the pixels the driver reads (POIs, background points) plus
-# this margin: room for the pyramid's coarse levels and the smoothing to settle before the POIs
-# (and for a matching's search, which may ask for more; see :meth:`DenseMethod.window_margin`).
-CROP_MARGIN_PX = 64
-# A window covering more than this share of the frame is not worth cutting out.
-CROP_MAX_SHARE = 0.8
-
-
-def crop_window(shape: tuple[int, int], needed: np.ndarray, margin: int) -> tuple[slice, slice] | None:
-    """Rows and columns of the bounding box of ``needed`` grown by ``margin`` px and clipped to
-    the frame; None where it would cover most of the frame anyway (or nothing is needed)."""
-    rows, cols = np.nonzero(needed)
-    if rows.size == 0:
-        return None
-    height, width = shape
-    r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, height)
-    c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, width)
-    if (r1 - r0) * (c1 - c0) > CROP_MAX_SHARE * height * width:
-        return None
-    return slice(r0, r1), slice(c0, c1)
-
-
-class DenseMethod(Method):
-    """Base class of dense reference-frame methods: implement :meth:`_solve`.
-
-    A method may also use what the user says about the structure: the driver calls
-    :meth:`bind` once with the reference frame and the POI mask before the frames, and
-    after each :meth:`calc` reads :attr:`last_sigmas_px`, the method's own standard
-    uncertainty ``(sigma_x, sigma_y)`` of the mean displacement over each region's POIs, by
-    the region's label in the mask (1 for a bool mask); a region it lacks (or None): the
-    driver estimates one.
-
-    Parameters
-    ----------
-    crop : bool
-        After :meth:`bind`, solve only the window around the pixels the driver reads (their
-        bounding box plus :meth:`window_margin`; default True): a small member in a 4K
-        frame is not solved over the whole frame. The flow outside it is NaN. Without
-        :meth:`bind`, or for frames of another size, the whole frame is solved.
-    """
-
-    kind = "dense"
-    last_sigmas_px: dict[int, tuple[float, float]] | None = None
-
-    def __init__(self, *, crop: bool = True, **params: Any) -> None:
-        if not isinstance(crop, bool):
-            raise ValueError(f"crop must be true or false, got {crop!r}")
-        super().__init__(crop=crop, **params)
-        self._crop_on = crop
-        self._window: tuple[slice, slice] | None = None
-        self._bound_shape: tuple[int, ...] | None = None
-
-    def bind(self, reference: np.ndarray, mask: np.ndarray, *, read: np.ndarray | None = None) -> None:
-        """Prepare for frames compared with ``reference``; ``mask`` (same shape) marks the
-        POIs, the structure's pixels (bool; or int labels 1..N of regions, 0 elsewhere);
-        ``read`` (bool, same shape, optional) the other pixels whose flow the driver reads
-        (static background points). The base class cuts out the window it solves (see
-        ``crop``); subclasses that use more call it first."""
-        self._window = None
-        self._bound_shape = reference.shape
-        mask = np.asarray(mask, bool)
-        if not self._crop_on or mask.shape != reference.shape:
-            return
-        margin = self.window_margin(reference.shape)
-        if margin is not None:
-            needed = mask if read is None else mask | np.asarray(read, bool)
-            self._window = crop_window(reference.shape, needed, margin)
-
-    def window_margin(self, shape: tuple[int, ...]) -> int | None:
-        """Pixels of context the method needs around the pixels it is asked for, in a frame
-        of ``shape``; None: it must see the whole frame."""
-        return CROP_MARGIN_PX
-
-    def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
-        """Flow from ``reference`` to ``current``.
-
-        Parameters
-        ----------
-        reference, current : ndarray, shape (H, W), uint8 or float32
-            Grey images of equal shape.
-
-        Returns
-        -------
-        ndarray, shape (H, W, 2), float32
-            ``flow[..., 0]`` = dx, ``flow[..., 1]`` = dy in pixels (NaN outside the window
-            solved, see ``crop``).
-        """
-        check_pair(reference, current)
-        return self._dense(reference, current)
-
-    def _dense(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
-        window = self._window
-        if window is None or reference.shape != self._bound_shape:
-            return self._solve(reference, current, whole_shape=reference.shape)
-        flow = np.full(reference.shape + (2,), np.nan, np.float32)
-        # (Contiguous copies: OpenCV's flow objects refuse strided views.)
-        flow[window] = self._solve(np.ascontiguousarray(reference[window]),
-                                   np.ascontiguousarray(current[window]), whole_shape=reference.shape)
-        return flow
-
-    def _solve(self, reference: np.ndarray, current: np.ndarray, *,
-               whole_shape: tuple[int, ...]) -> np.ndarray:
-        """The flow field of a checked pair, which may be a window cut out of frames of
-        ``whole_shape`` (a method whose reach scales with the frame uses that)."""
-        raise NotImplementedError
-
-
-def check_pair(reference: np.ndarray, current: np.ndarray) -> None:
-    """Raise ``ValueError`` naming the problem if the pair cannot be compared."""
-    for label, image in (("reference", reference), ("current", current)):
-        if not isinstance(image, np.ndarray) or image.ndim != 2:
-            shape = getattr(image, "shape", None)
-            raise ValueError(f"{label} image must be a 2-D grey array, got shape {shape}")
-        if image.dtype not in (np.uint8, np.float32):
-            raise ValueError(f"{label} image must be uint8 or float32, got {image.dtype}")
-    if reference.shape != current.shape:
-        raise ValueError(
-            f"reference is {reference.shape[1]}x{reference.shape[0]} but current is "
-            f"{current.shape[1]}x{current.shape[0]}: frames must have equal size"
-        )
-
-
-@dataclass(frozen=True)
-class _Entry:
-    factory: Callable[..., Any]
-    kind: str
-    summary: str
-
-
-_REGISTRY: dict[str, _Entry] = {}
-
-
-def register(name: str) -> Callable[[type], type]:
-    """Class decorator adding a method to the registry under ``name``."""
-
-    def decorate(cls: type) -> type:
-        if name in _REGISTRY:
-            raise ValueError(f"method {name!r} is registered twice")
-        cls.name = name
-        _REGISTRY[name] = _Entry(cls, getattr(cls, "kind", "dense"), getattr(cls, "summary", ""))
-        return cls
-
-    return decorate
-
-
+@functools.cache
 def _load_builtin_methods() -> None:
-    # Importing the package registers every built-in method exactly once.
-    import flow.methods  # noqa: F401
+    for module in _BUILTIN_MODULES:
+        importlib.import_module(module)
+    for module, names in _OPTIONAL_MODULES.items():
+        try:
+            importlib.import_module(module)
+        except ImportError as err:
+            for name in names:
+                register_unavailable(name, str(err))
 
 
 def available() -> list[str]:
     """Names of all registered methods, sorted."""
     _load_builtin_methods()
-    return sorted(_REGISTRY)
+    return sorted(base._REGISTRY)
+
+
+def unavailable() -> dict[str, str]:
+    """``{name: why it cannot run here}`` of the methods a missing dependency keeps out (an
+    OpenCV build without contrib's ``optflow``, say), in the order they were found."""
+    _load_builtin_methods()
+    return dict(base._UNAVAILABLE)
 
 
 def describe() -> dict[str, str]:
     """``{name: one-line summary}`` of all registered methods."""
     _load_builtin_methods()
-    return {name: _REGISTRY[name].summary for name in sorted(_REGISTRY)}
+    return {name: base._REGISTRY[name].summary for name in sorted(base._REGISTRY)}
 
 
 def kinds() -> dict[str, str]:
     """``{name: kind}`` of all registered methods: ``"dense"`` (a flow field against the
     reference frame, frames independent) or ``"sparse"`` (features followed frame to frame)."""
     _load_builtin_methods()
-    return {name: _REGISTRY[name].kind for name in sorted(_REGISTRY)}
+    return {name: base._REGISTRY[name].kind for name in sorted(base._REGISTRY)}
 
 
 def get_method(name: str, **params: Any) -> Any:
     """Instantiate the method registered as ``name`` with keyword parameters."""
     _load_builtin_methods()
     try:
-        entry = _REGISTRY[name]
+        entry = base._REGISTRY[name]
     except KeyError:
         raise ValueError(
-            f"unknown method {name!r}; available: {', '.join(sorted(_REGISTRY))}"
+            f"unknown method {name!r}; available: {', '.join(sorted(base._REGISTRY))}"
         ) from None
     return entry.factory(**params)

@@ -21,7 +21,7 @@ import numpy as np
 
 from flow.deepmatching import MatchParams, deep_matching, densify, search_radius
 from flow.member import MemberEdges
-from flow.registry import CROP_MARGIN_PX, DenseMethod, check_pair, register
+from flow.methods.base import CROP_MARGIN_PX, DenseMethod, check_pair, register
 from flow.variational import VariationalParams, Workspace, refine
 
 _MATCH_FIELDS = {f.name for f in dataclasses.fields(MatchParams)}
@@ -161,7 +161,7 @@ class DeepFlow(DenseMethod):
         in full.
     crop : bool
         Solve the dense flow only around the pixels that are read (the POIs' and background
-        points' bounding box plus :data:`flow.registry.CROP_MARGIN_PX` or the whole frame's
+        points' bounding box plus :data:`flow.methods.base.CROP_MARGIN_PX` or the whole frame's
         search radius, whichever is larger; default True); the flow elsewhere is NaN.
         Without :meth:`bind` the whole frame is solved.
     downscale, ngh_rad, max_patch, ... : matching parameters

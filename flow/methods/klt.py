@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from flow.io import as_uint8
-from flow.registry import Method, register
+from flow.methods.base import SparseMethod, register
 
 _KLT_DEFAULTS = dict(detector="harris", max_corners=200, quality_level=0.01, min_distance=5,
                      block_size=5, window=21, levels=3, use_mask=False)
@@ -33,16 +33,10 @@ def _check_detector(detector: str) -> None:
         raise ValueError(f"KLT detector {detector!r} unknown; use 'harris' or 'shi-tomasi'")
 
 
-class SparseMethod(Method):
-    """Base class of sparse methods that follow their own features.
+class _KLTBase(SparseMethod):
+    """What ``klt`` and ``klt-ref`` share: the parameters with their defaults, corner
+    detection and pyramidal Lucas-Kanade (OpenCV's, on 8-bit images)."""
 
-    The driver calls :meth:`start` once with the reference frame, then
-    :meth:`step` with every frame in order (frame 0 included). ``step``
-    returns the displacement of every feature relative to the reference,
-    ``(N, 2)`` float32, NaN where a feature is lost.
-    """
-
-    kind = "sparse"
     full_depth = False
 
     def __init__(self, **params: Any) -> None:
@@ -91,12 +85,9 @@ class SparseMethod(Method):
                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         return new.reshape(-1, 2), status.ravel().astype(bool)
 
-    def step(self, current: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
-
 
 @register("klt")
-class KLT(SparseMethod):
+class KLT(_KLTBase):
     """Paper baseline: corners in the ROI, pyramidal LK frame to frame, integrated motion.
 
     Parameters
@@ -124,7 +115,7 @@ class KLT(SparseMethod):
 
 
 @register("klt-ref")
-class KLTReference(SparseMethod):
+class KLTReference(_KLTBase):
     """KLT features tracked against the fixed reference frame (no integration)."""
 
     summary = "KLT features (Harris) tracked against the fixed reference frame with pyramidal LK; plain average"

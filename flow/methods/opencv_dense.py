@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from flow.io import as_uint8
-from flow.registry import DenseMethod, register
+from flow.methods.base import DenseMethod, register, register_unavailable
 
 
 def _has_optflow() -> bool:
@@ -59,6 +59,9 @@ if _has_optflow():
 
         def _build(self) -> Any:
             return cv2.optflow.createOptFlow_DeepFlow()
+else:
+    register_unavailable("deepflow-opencv", f"this OpenCV {cv2.__version__} build lacks "
+                         "optflow.createOptFlow_DeepFlow (opencv-contrib)")
 
 
 _DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
@@ -151,3 +154,5 @@ if _has_optflow() and hasattr(cv2.optflow, "DualTVL1OpticalFlow_create"):
             tvl1.setScalesNumber(int(p["scales"]))
             tvl1.setEpsilon(float(p["epsilon"]))
             return tvl1
+else:
+    register_unavailable("tvl1", f"this OpenCV {cv2.__version__} build lacks optflow.DualTVL1OpticalFlow")

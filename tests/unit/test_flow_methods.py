@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from flow import registry
 from flow.io import FrameSource
+from flow.methods.base import CROP_MARGIN_PX
 from flow.methods.klt import KLT
 from flow.track import measure, track_dense, track_sparse
+
+ROOT = Path(__file__).resolve().parents[2]
 
 # The sub-pixel test below skips these two: `deepflow` has its own, stricter accuracy tests
 # (tests/unit/test_deepflow.py), and `deepmatching` is an ablation whose matches sit on an
@@ -45,6 +54,31 @@ def test_registry_lists_dense_and_sparse_methods() -> None:
         assert name in names
     assert all(registry.describe()[n] for n in names)
     assert registry.kinds()["klt"] == "sparse" and registry.kinds()["dis"] == "dense"
+    assert set(registry.unavailable()).isdisjoint(names)
+
+
+def test_registry_says_why_a_method_is_unavailable() -> None:
+    # A fresh interpreter where DeepFlow's refinement cannot be imported (as where a
+    # dependency is missing): its methods are left out, the registry says why, and the CLI
+    # falls back to deepflow-opencv with that reason, asking the registry only.
+    code = ("import contextlib, io, json, sys\n"
+            "sys.modules['flow.variational'] = None\n"
+            "from flow import cli, registry\n"
+            "out = io.StringIO()\n"
+            "with contextlib.redirect_stdout(out):\n    cli.main(['methods'])\n"
+            "print(json.dumps([registry.available(), registry.unavailable(),"
+            " cli._default_method(), out.getvalue()]))\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                         env=env, timeout=120)
+    assert run.returncode == 0, run.stderr
+    names, missing, (default, note), listing = json.loads(run.stdout.splitlines()[-1])
+    assert {"deepflow", "deepflow-dense", "deepmatching"} <= set(missing)
+    assert "dis" in names and set(missing).isdisjoint(names)
+    assert "flow.variational" in missing["deepflow"]
+    assert default == "deepflow-opencv" and f"({missing['deepflow']})" in note
+    assert f"(deepflow unavailable: {missing['deepflow']})" in listing
 
 
 @pytest.mark.parametrize("name", DENSE)
@@ -144,7 +178,7 @@ def test_dense_methods_solve_only_the_window_they_are_asked_for(name: str) -> No
     solved = np.isfinite(flow[..., 0])
     rows, cols = np.nonzero(solved)
     margin = method.window_margin(reference.shape)
-    assert margin >= registry.CROP_MARGIN_PX
+    assert margin >= CROP_MARGIN_PX
     assert (rows.min(), rows.max() + 1) == (max(150 - margin, 0), min(170 + margin, 320))
     assert (cols.min(), cols.max() + 1) == (max(200 - margin, 0), min(240 + margin, 480))
     assert solved.sum() == (np.ptp(rows) + 1) * (np.ptp(cols) + 1) < 0.8 * reference.size

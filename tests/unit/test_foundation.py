@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import ast
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import jsonschema
@@ -41,6 +44,119 @@ def test_package_boundaries(package):
         if _imported_top_levels(f) & FORBIDDEN[package]
     }
     assert not offenders, f"{package} imports what it must not: {offenders}"
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(tree: ast.AST, *, deferred: bool) -> list[ast.Import | ast.ImportFrom]:
+    """The import statements of a module: those run when it is imported, and with
+    ``deferred`` also those inside functions (run when the function is first called)."""
+    found, stack = [], list(ast.iter_child_nodes(tree))
+    while stack:
+        node = stack.pop()
+        if isinstance(node, ast.Import | ast.ImportFrom):
+            found.append(node)
+        if deferred or not isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda):
+            stack.extend(ast.iter_child_nodes(node))
+    return found
+
+
+def _flow_import_graph(*, deferred: bool) -> dict[str, set[str]]:
+    """``{module: modules of flow it imports}`` over flow/**/*.py.
+
+    Importing ``a.b.c`` first runs the packages ``a`` and ``a.b`` (their ``__init__``): those
+    count too, except the importer's own packages (already running when it runs); ``from p
+    import x`` imports the module ``p.x`` where there is one."""
+    paths = {_module_name(p): p for p in sorted((ROOT / "flow").rglob("*.py"))}
+    graph: dict[str, set[str]] = {}
+    for module, path in paths.items():
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        targets: set[str] = set()
+        for node in _imports(ast.parse(path.read_text(), filename=str(path)), deferred=deferred):
+            if isinstance(node, ast.Import):
+                named = [alias.name for alias in node.names]
+            else:
+                base = node.module or ""
+                if node.level:
+                    above = package.split(".")[:len(package.split(".")) - node.level + 1]
+                    base = ".".join(above + ([base] if base else []))
+                named = [f"{base}.{a.name}" if f"{base}.{a.name}" in paths else base for a in node.names]
+            for name in named:
+                parts = name.split(".")
+                for depth in range(1, len(parts) + 1):
+                    target = ".".join(parts[:depth])
+                    own_package = module == target or module.startswith(target + ".")
+                    if target in paths and (target == name or not own_package) and target != module:
+                        targets.add(target)
+        graph[module] = targets
+    return graph
+
+
+def _circle_through(graph: dict[str, set[str]], start: str) -> list[str] | None:
+    """A shortest chain of imports from ``start`` back to ``start``, or None."""
+    came_from: dict[str, str] = {}
+    frontier = [start]
+    while frontier:
+        following = []
+        for module in frontier:
+            for target in sorted(graph[module]):
+                if target == start:
+                    chain = [module]
+                    while chain[-1] != start:
+                        chain.append(came_from[chain[-1]])
+                    return [start, *reversed(chain[:-1]), start]
+                if target not in came_from:
+                    came_from[target] = module
+                    following.append(target)
+        frontier = following
+    return None
+
+
+def test_flow_modules_import_in_no_circle():
+    # A module importing one that (through others) imports it back sees it half-built
+    # ("cannot import name ... from partially initialized module"), depending on which of
+    # the two a caller happened to import first.
+    graph = _flow_import_graph(deferred=False)
+    circles = {" -> ".join(c) for m in graph if (c := _circle_through(graph, m))}
+    assert not circles, f"flow's modules import in a circle: {sorted(circles)}"
+
+
+def test_registry_and_methods_import_in_no_circle_even_on_demand():
+    # STYLE.md "Base classes apart from the registry": a method module imports the base, the
+    # registry loads the methods (on first use) and imports the base; neither way back, not
+    # even from inside a function.
+    graph = _flow_import_graph(deferred=True)
+    ours = [m for m in graph if m == "flow.registry" or m.split(".")[:2] == ["flow", "methods"]]
+    circles = {" -> ".join(c) for m in ours if (c := _circle_through(graph, m))}
+    assert not circles, f"the registry and the methods import in a circle: {sorted(circles)}"
+
+
+METHOD_MODULES = ["flow.registry", "flow.methods", "flow.methods.base", *(
+    f"flow.methods.{p.stem}" for p in sorted((ROOT / "flow" / "methods").glob("*.py"))
+    if p.stem not in ("__init__", "base"))]
+# Each module first, each pair of modules both ways round.
+IMPORT_ORDERS = [pytest.param(names[i:] + names[:i], id=f"{names[i]}-first-{way}")
+                 for way, names in (("forward", METHOD_MODULES), ("backward", METHOD_MODULES[::-1]))
+                 for i in range(len(names))]
+
+
+@pytest.mark.parametrize("order", IMPORT_ORDERS)
+def test_registry_and_methods_import_in_any_order(order):
+    # In a fresh interpreter; then the registry knows every built-in method.
+    from flow import registry
+
+    code = ("import importlib\n"
+            f"for name in {order!r}:\n    importlib.import_module(name)\n"
+            "from flow import registry\nprint(','.join(registry.available()))\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                         env=env, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == [",".join(registry.available())]
 
 
 def test_deep_merge_overrides_nested_and_replaces_lists():

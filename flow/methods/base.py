@@ -1,0 +1,224 @@
+"""What every displacement-measurement method is: the base classes, and ``@register`` to declare one.
+
+Every tracker is an interchangeable part behind one interface (after OpenCV's
+``DenseOpticalFlow.calc`` and ptlflow's ``BaseModel``):
+
+* a *dense* method maps ``(reference, current)`` grey images to a flow field
+  ``(H, W, 2)`` float32 holding ``(dx, dy)`` in pixels such that
+  ``reference[y, x]`` is seen at ``current[y + dy, x + dx]``;
+* a *sparse* method follows its own features through the sequence.
+
+The reference-frame driver, POI sampling, filtering (paper eq. 10-12) and
+averaging are shared steps outside the methods. A method module imports this module
+(the base classes and ``@register``) and nothing else of the methods' plumbing;
+:mod:`flow.registry` loads the methods and answers for them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+
+class Method:
+    """What every registered method shares: its name, summary, kind and parameters.
+
+    Subclasses set ``summary`` (one line for ``refflow methods``); the registry
+    sets ``name``. Parameters are keyword-only constructor arguments with the
+    published defaults; :meth:`params` reports them.
+    """
+
+    kind = ""
+    name: str = ""
+    summary: str = ""
+    # False for methods built on OpenCV functions that take 8-bit images only: they see
+    # 10-16-bit data rounded to 8 bits (``flow.io.as_uint8``).
+    full_depth = True
+
+    def __init__(self, **params: Any) -> None:
+        self._params = dict(params)
+
+    def params(self) -> dict[str, Any]:
+        """Parameters of this instance, for the JSON sidecar."""
+        return dict(self._params)
+
+
+# A dense method solves the flow on the pixels the driver reads (POIs, background points) plus
+# this margin: room for the pyramid's coarse levels and the smoothing to settle before the POIs
+# (and for a matching's search, which may ask for more; see :meth:`DenseMethod.window_margin`).
+CROP_MARGIN_PX = 64
+# A window covering more than this share of the frame is not worth cutting out.
+CROP_MAX_SHARE = 0.8
+
+
+def crop_window(shape: tuple[int, int], needed: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """Rows and columns of the bounding box of ``needed`` grown by ``margin`` px and clipped to
+    the frame; None where it would cover most of the frame anyway (or nothing is needed)."""
+    rows, cols = np.nonzero(needed)
+    if rows.size == 0:
+        return None
+    height, width = shape
+    r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, height)
+    c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, width)
+    if (r1 - r0) * (c1 - c0) > CROP_MAX_SHARE * height * width:
+        return None
+    return slice(r0, r1), slice(c0, c1)
+
+
+class DenseMethod(Method):
+    """Base class of dense reference-frame methods: implement :meth:`_solve`.
+
+    A method may also use what the user says about the structure: the driver calls
+    :meth:`bind` once with the reference frame and the POI mask before the frames, and
+    after each :meth:`calc` reads :attr:`last_sigmas_px`, the method's own standard
+    uncertainty ``(sigma_x, sigma_y)`` of the mean displacement over each region's POIs, by
+    the region's label in the mask (1 for a bool mask); a region it lacks (or None): the
+    driver estimates one.
+
+    Parameters
+    ----------
+    crop : bool
+        After :meth:`bind`, solve only the window around the pixels the driver reads (their
+        bounding box plus :meth:`window_margin`; default True): a small member in a 4K
+        frame is not solved over the whole frame. The flow outside it is NaN. Without
+        :meth:`bind`, or for frames of another size, the whole frame is solved.
+    """
+
+    kind = "dense"
+    last_sigmas_px: dict[int, tuple[float, float]] | None = None
+
+    def __init__(self, *, crop: bool = True, **params: Any) -> None:
+        if not isinstance(crop, bool):
+            raise ValueError(f"crop must be true or false, got {crop!r}")
+        super().__init__(crop=crop, **params)
+        self._crop_on = crop
+        self._window: tuple[slice, slice] | None = None
+        self._bound_shape: tuple[int, ...] | None = None
+
+    def bind(self, reference: np.ndarray, mask: np.ndarray, *, read: np.ndarray | None = None) -> None:
+        """Prepare for frames compared with ``reference``; ``mask`` (same shape) marks the
+        POIs, the structure's pixels (bool; or int labels 1..N of regions, 0 elsewhere);
+        ``read`` (bool, same shape, optional) the other pixels whose flow the driver reads
+        (static background points). The base class cuts out the window it solves (see
+        ``crop``); subclasses that use more call it first."""
+        self._window = None
+        self._bound_shape = reference.shape
+        mask = np.asarray(mask, bool)
+        if not self._crop_on or mask.shape != reference.shape:
+            return
+        margin = self.window_margin(reference.shape)
+        if margin is not None:
+            needed = mask if read is None else mask | np.asarray(read, bool)
+            self._window = crop_window(reference.shape, needed, margin)
+
+    def window_margin(self, shape: tuple[int, ...]) -> int | None:
+        """Pixels of context the method needs around the pixels it is asked for, in a frame
+        of ``shape``; None: it must see the whole frame."""
+        return CROP_MARGIN_PX
+
+    def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
+        """Flow from ``reference`` to ``current``.
+
+        Parameters
+        ----------
+        reference, current : ndarray, shape (H, W), uint8 or float32
+            Grey images of equal shape.
+
+        Returns
+        -------
+        ndarray, shape (H, W, 2), float32
+            ``flow[..., 0]`` = dx, ``flow[..., 1]`` = dy in pixels (NaN outside the window
+            solved, see ``crop``).
+        """
+        check_pair(reference, current)
+        return self._dense(reference, current)
+
+    def _dense(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
+        window = self._window
+        if window is None or reference.shape != self._bound_shape:
+            return self._solve(reference, current, whole_shape=reference.shape)
+        flow = np.full(reference.shape + (2,), np.nan, np.float32)
+        # (Contiguous copies: OpenCV's flow objects refuse strided views.)
+        flow[window] = self._solve(np.ascontiguousarray(reference[window]),
+                                   np.ascontiguousarray(current[window]), whole_shape=reference.shape)
+        return flow
+
+    def _solve(self, reference: np.ndarray, current: np.ndarray, *,
+               whole_shape: tuple[int, ...]) -> np.ndarray:
+        """The flow field of a checked pair, which may be a window cut out of frames of
+        ``whole_shape`` (a method whose reach scales with the frame uses that)."""
+        raise NotImplementedError
+
+
+def check_pair(reference: np.ndarray, current: np.ndarray) -> None:
+    """Raise ``ValueError`` naming the problem if the pair cannot be compared."""
+    for label, image in (("reference", reference), ("current", current)):
+        if not isinstance(image, np.ndarray) or image.ndim != 2:
+            shape = getattr(image, "shape", None)
+            raise ValueError(f"{label} image must be a 2-D grey array, got shape {shape}")
+        if image.dtype not in (np.uint8, np.float32):
+            raise ValueError(f"{label} image must be uint8 or float32, got {image.dtype}")
+    if reference.shape != current.shape:
+        raise ValueError(
+            f"reference is {reference.shape[1]}x{reference.shape[0]} but current is "
+            f"{current.shape[1]}x{current.shape[0]}: frames must have equal size"
+        )
+
+
+class SparseMethod(Method):
+    """Base class of sparse methods that follow their own features: implement
+    :meth:`start` and :meth:`step`.
+
+    The driver calls :meth:`start` once with the reference frame, then
+    :meth:`step` with every frame in order (frame 0 included). ``step``
+    returns the displacement of every feature relative to the reference,
+    ``(N, 2)`` float32, NaN where a feature is lost.
+    """
+
+    kind = "sparse"
+
+    def start(self, reference: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+        """Find the features in ``reference`` (``mask``: the POIs, bool, if the method uses
+        them) and return their positions ``(N, 2)`` float32."""
+        raise NotImplementedError
+
+    def step(self, current: np.ndarray) -> np.ndarray:
+        """Displacement ``(N, 2)`` float32 of every feature from the reference to ``current``."""
+        raise NotImplementedError
+
+
+# Declaring a method. The table lives here, next to the base classes, so that a method module
+# imports this module only: flow.registry loads the method modules and reads the table, and
+# nothing imports the registry back.
+
+@dataclass(frozen=True)
+class _Entry:
+    factory: Callable[..., Any]
+    kind: str
+    summary: str
+
+
+_REGISTRY: dict[str, _Entry] = {}
+_UNAVAILABLE: dict[str, str] = {}
+
+
+def register(name: str) -> Callable[[type], type]:
+    """Class decorator adding a method to the registry under ``name``."""
+
+    def decorate(cls: type) -> type:
+        if name in _REGISTRY:
+            raise ValueError(f"method {name!r} is registered twice")
+        cls.name = name
+        _REGISTRY[name] = _Entry(cls, getattr(cls, "kind", "dense"), getattr(cls, "summary", ""))
+        return cls
+
+    return decorate
+
+
+def register_unavailable(name: str, reason: str) -> None:
+    """Record that the method ``name`` cannot run here and why (a dependency is missing), for
+    :func:`flow.registry.unavailable`."""
+    _UNAVAILABLE[name] = reason
