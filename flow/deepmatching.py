@@ -52,6 +52,10 @@ from numba import njit
 from flow.checks import check_grey_pair
 from flow.params import check_fields
 
+# The kernels keep IEEE arithmetic (no fastmath): with LLVM free to reassociate sums, a freshly
+# compiled kernel and the same kernel loaded from numba's cache gave different bytes, so the
+# first run on a fresh machine differed from every later one (tests/unit/test_determinism.py).
+
 ATOMIC = 4  # atomic patch side in (downscaled) pixels
 N_ORIENT = 8
 
@@ -161,7 +165,7 @@ def _patch_norms(planes: np.ndarray) -> np.ndarray:
 # loops that LLVM vectorises.
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _accumulate_products(f1, f2, y, ty, R, fsum, bsum, add_f, add_b):
     """Add (or, starting a block, write) the products of row ``y`` of ``f1`` and ``ty`` of ``f2``.
 
@@ -196,7 +200,7 @@ def _accumulate_products(f1, f2, y, ty, R, fsum, bsum, add_f, add_b):
             bs[i] = bs[i] + p if add_b else p
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _normalised_block_sums(rows, x0, n1_row, x1, n2_row, x2, count, out):
     """``out[j]``: sum of ``rows[x0 + 4j .. + 3]`` over the norms at ``n1_row[x1 + 4j]``, ``n2_row[x2 + 4j]``."""
     tiny = np.float32(1e-6)
@@ -208,7 +212,7 @@ def _normalised_block_sums(rows, x0, n1_row, x1, n2_row, x2, count, out):
         out[j] = s / (na * nb) if (na > tiny and nb > tiny) else 0.0
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _atomic_both(f1, f2, n1, n2, R, kd0, kd1, fwd, bwd):
     """Atomic responses of both directions from one pass over the displacements.
 
@@ -265,7 +269,7 @@ def _atomic_both(f1, f2, n1, n2, R, kd0, kd1, fwd, bwd):
                     )  # fmt: skip
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _pool_subsample(child):
     """3x3 max-pooling of the displacements, subsampled by two.
 
@@ -326,7 +330,7 @@ def _children(level, i, j, ny, nx):
     return ci, cj
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _power(x, p, scratch):
     """``x ** p`` in place for ``x >= 0``, in float32 to about 1e-6 relative.
 
@@ -394,7 +398,7 @@ def _power(x, p, scratch):
         bits[j] = bits[j] + (k << np.int32(23)) if k > -127 else np.int32(0)
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _aggregate(pooled, level, power, out_ny, out_nx):
     """Mean of the (existing) children's pooled maps, power-rectified."""
     ny, D, _, nx = pooled.shape

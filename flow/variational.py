@@ -46,6 +46,10 @@ from numba import njit
 from flow.checks import check_grey_pair, check_shape
 from flow.params import check_fields
 
+# The kernels keep IEEE arithmetic (no fastmath): with LLVM free to reassociate sums, a freshly
+# compiled kernel and the same kernel loaded from numba's cache gave different bytes, so the
+# first run on a fresh machine differed from every later one (tests/unit/test_determinism.py).
+
 
 @dataclass(frozen=True)
 class VariationalParams:
@@ -151,7 +155,7 @@ _D1 = np.float32(8.0 / 12.0)
 _D2 = np.float32(1.0 / 12.0)
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _diff_x_at(s, x, W):
     # Five-point derivative at column x of row s, replicated border.
     return _D1 * (s[min(x + 1, W - 1)] - s[max(x - 1, 0)]) - _D2 * (
@@ -159,7 +163,7 @@ def _diff_x_at(s, x, W):
     )
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _diff_x(src, dst):
     """Brox et al.'s five-point derivative (1, -8, 0, 8, -1) / 12 along x."""
     H, W = src.shape
@@ -174,7 +178,7 @@ def _diff_x(src, dst):
             d[x] = _diff_x_at(s, x, W)
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _diff_y(src, dst):
     """Five-point derivative along y, replicated border."""
     H, W = src.shape
@@ -188,7 +192,7 @@ def _diff_y(src, dst):
             d[x] = _D1 * (p1[x] - m1[x]) - _D2 * (p2[x] - m2[x])
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _derivatives(image, out):
     """I, Ix, Iy, Ixx, Ixy, Iyy of ``image`` into the planes ``out[0:6]``."""
     out[0] = image
@@ -199,7 +203,7 @@ def _derivatives(image, out):
     _diff_y(out[2], out[5])
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _cubic(t):
     # Keys' cubic convolution weights of the taps at -1, 0, 1, 2 for an offset t in [0, 1).
     a = np.float32(_CUBIC_A)
@@ -214,7 +218,7 @@ def _cubic(t):
     return w0, w1, w2, w3
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _warp(image, flow, out, inside):
     """Bicubic ``image(x + flow(x))`` with a replicated border into ``out``.
 
@@ -259,7 +263,7 @@ def _warp(image, flow, out, inside):
             )
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _zero_ring(packed):
     # Zero the first and last rows and slots of a packed array.
     last = packed.shape[-1] - 1
@@ -273,7 +277,7 @@ def _zero_ring(packed):
                 row[q, c, last] = 0.0
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _pack_data(s1, s2, inside, zeta2, out):
     """Linearised data terms (see ``_N_DATA``) from the derivative planes, packed.
 
@@ -331,7 +335,7 @@ def _pack_data(s1, s2, inside, zeta2, out):
                 g[:, c, k] = 0.0
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _pack_level(flow, match, match_scale, half_weight, alpha, out):
     """Per-level constants (see ``_N_LEVEL``), packed.
 
@@ -373,7 +377,7 @@ def _pack_level(flow, match, match_scale, half_weight, alpha, out):
                 row[:, c, k] = 0.0
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _gradient_magnitude(image, out, scratch):
     """``|grad image|`` (five-point derivatives) into ``out``."""
     _diff_x(image, out)
@@ -386,7 +390,7 @@ def _gradient_magnitude(image, out, scratch):
             o[x] = math.sqrt(o[x] * o[x] + g[x] * g[x])
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _prepare_level(
     image1,
     image2,
@@ -424,7 +428,7 @@ def _prepare_level(
     _pack_level(flow, match, match_scale, half_weight, alpha, level)
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _add_increment(flow, du, dv):
     """``flow`` (H, W, 2) plus the packed increments."""
     H, W, _ = flow.shape
@@ -438,7 +442,7 @@ def _add_increment(flow, du, dv):
     return out
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _sor_row(du, dv, E, S, coef, c, y, omega):
     """Over-relax the colour-``c`` pixels of row ``y`` (Gauss-Seidel on u, then v)."""
     o = 1 - c
@@ -478,7 +482,7 @@ def _sor_row(du, dv, E, S, coef, c, y, omega):
         dv_c[k] = old_v + omega * ((b2[k] + sv - a12[k] * new_u) * i22[k] - old_v)
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _sor_step(du, dv, E, S, coef, t, n, omega):
     """Step ``t`` of ``n`` pipelined red-black SOR sweeps (see :func:`_sor`)."""
     H = du.shape[0] - 2
@@ -490,7 +494,7 @@ def _sor_step(du, dv, E, S, coef, t, n, omega):
             _sor_row(du, dv, E, S, coef, 1, y - 1, omega)
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _sor(du, dv, E, S, coef, n_sor, omega, chunk):
     """``n_sor`` red-black SOR sweeps, ``chunk`` of them per pass over memory.
 
@@ -512,7 +516,7 @@ def _sor(du, dv, E, S, coef, n_sor, omega, chunk):
         done += n
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _total_rows(level, du, dv, T, H, W, r0, r1):
     """Total flow u + du, v + dv of rows [r0, r1) into ``T``, ring replicated.
 
@@ -549,7 +553,7 @@ def _total_rows(level, du, dv, T, H, W, r0, r1):
                 T[H + 1, q, 1 - c] = T[H, q, c]
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _smoothness_rows(T, level, a, eps2, W, r0, r1):
     """Robust smoothness weights ``alpha(x) psi'(|grad w|^2)`` of rows [r0, r1)."""
     half = np.float32(0.5)
@@ -577,7 +581,7 @@ def _smoothness_rows(T, level, a, eps2, W, r0, r1):
                 out[k] = alpha[k] * half / math.sqrt(g2 + e2)
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _link_rows(a, E, S, H, W, r0, r1):
     """Links to the east and south neighbours (mean of both weights; 0 off the image)."""
     half = np.float32(0.5)
@@ -603,7 +607,7 @@ def _link_rows(a, E, S, H, W, r0, r1):
                 s[:] = 0.0
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _coef_rows(level, data, du, dv, E, S, coef, delta, gamma, eps2, r0, r1):
     """Frozen linear system of rows [r0, r1): data, matching and smoothness terms.
 
@@ -702,7 +706,7 @@ def _coef_rows(level, data, du, dv, E, S, coef, delta, gamma, eps2, r0, r1):
 _SETUP_LAG = 4
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _outer_iteration(
     level, data, du, dv, T, a, E, S, coef, delta, gamma, eps2, W, n_sor, omega, chunk
 ):
@@ -732,7 +736,7 @@ def _outer_iteration(
         _sor(du, dv, E, S, coef, n_sor - n, omega, chunk)
 
 
-@njit(cache=True, fastmath=True, error_model="numpy", nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _solve_level(
     level, data, W, delta, gamma, eps2, n_outer, n_sor, omega, chunk, du, dv, E, S, T, a, coef
 ):
