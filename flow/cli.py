@@ -379,7 +379,7 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
     renamed (the CSV last), so a failure or Ctrl-C leaves none of them. A run of several
     regions filters and averages each on its own and writes one row per frame and region.
     """
-    from flow import track
+    from flow import formats, quality, storage
 
     raw = getattr(args, "raw_tracks", None)
     sparse = run["method_kind"] == "sparse"
@@ -391,19 +391,19 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
         columns.insert(columns.index("time_s") + 1, "region")
     if args.out:
         filter_mode = args.filter or ("none" if sparse else "paper")
-        results = [(label, track.measure(tracks.select(label), filter_enabled=filter_mode != "none",
-                                         average="median" if filter_mode == "median" else "mean",
-                                         threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
-                                         # KLT mixes background and structure features by design (the
-                                         # paper's baseline): their disagreement is no sign of a blocked view
-                                         check_coherence=not sparse))
+        results = [(label, quality.measure(tracks.select(label), filter_enabled=filter_mode != "none",
+                                           average="median" if filter_mode == "median" else "mean",
+                                           threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
+                                           # KLT mixes background and structure features by design (the
+                                           # paper's baseline): their disagreement is no sign of a blocked view
+                                           check_coherence=not sparse))
                    for label in tracks.labels()]
         sidecar = _sidecar(args, run, notes, results, mm_per_px, scale_source, filter_mode, columns, started)
     sidecar_text = json_text(sidecar) if args.out else ""  # a bad value fails before any file exists
     with atomic_paths(*_output_names(args)) as temporaries:
         pending = list(temporaries)
         if raw:
-            track.save_raw_tracks(pending.pop(0), tracks, {**run, "notes": notes, "versions": versions()})
+            formats.save_raw_tracks(pending.pop(0), tracks, {**run, "notes": notes, "versions": versions()})
         if args.save_poi_tracks:
             roi = run["roi"]
             kept = np.zeros(len(tracks.x_px), bool)
@@ -413,7 +413,7 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
                 kept[where] = result.filtered.kept
                 mcr[where] = result.filtered.mcr
             valid = np.column_stack([result.valid for _, result in results])
-            track.write_npz(pending.pop(0), {
+            storage.write_npz(pending.pop(0), {
                 "frame": tracks.frame, "time_s": tracks.time_s, "dx_px": tracks.dx, "dy_px": tracks.dy,
                 "x_px": tracks.x_px + roi["x"], "y_px": tracks.y_px + roi["y"],
                 "valid": valid if multi else valid[:, 0], "kept": kept, "mcr": mcr, "residual": tracks.residual,
@@ -424,7 +424,7 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
             with pending.pop(0).open("w", newline="") as handle:
                 writer = csv.DictWriter(handle, fieldnames=columns)
                 writer.writeheader()
-                per_region = [track.iter_rows(result, mm_per_px, label if multi else None)
+                per_region = [formats.iter_rows(result, mm_per_px, label if multi else None)
                               for label, result in results]
                 for rows in zip(*per_region, strict=True):  # frame by frame, regions in label order
                     for row in rows:
@@ -502,7 +502,7 @@ def available_cores() -> int:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
-    from flow import poi, track
+    from flow import driver, poi
 
     started = time.perf_counter()
     notes: list[str] = []
@@ -565,17 +565,17 @@ def cmd_track(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         if sparse:
-            tracks = track.track_sparse(source, method, mask, reference_frame=args.reference_frame,
-                                        reference_average=args.reference_average,
-                                        max_frames=args.max_frames, undistort=undistort,
-                                        progress=not args.no_progress, store_dir=store_dir)
+            tracks = driver.track_sparse(source, method, mask, reference_frame=args.reference_frame,
+                                         reference_average=args.reference_average,
+                                         max_frames=args.max_frames, undistort=undistort,
+                                         progress=not args.no_progress, store_dir=store_dir)
         else:
-            tracks = track.track_dense(source, lambda: _build_method(name, params), poi_xy,
-                                       reference_frame=args.reference_frame,
-                                       reference_average=args.reference_average, jobs=args.jobs,
-                                       max_frames=args.max_frames, frames=frames, undistort=undistort,
-                                       progress=not args.no_progress, store_dir=store_dir,
-                                       background=background, mask=labels)
+            tracks = driver.track_dense(source, lambda: _build_method(name, params), poi_xy,
+                                        reference_frame=args.reference_frame,
+                                        reference_average=args.reference_average, jobs=args.jobs,
+                                        max_frames=args.max_frames, frames=frames, undistort=undistort,
+                                        progress=not args.no_progress, store_dir=store_dir,
+                                        background=background, mask=labels)
     notes.extend(source.notes)
     for warning in caught:
         notes.append(str(warning.message))
@@ -643,14 +643,14 @@ def _counts(results: list[tuple[int, Any]]) -> str:
 
 
 def cmd_merge(args: argparse.Namespace) -> int:
-    from flow import track
+    from flow import formats
 
     started = time.perf_counter()
     _check_scale_options(args)
     _check_measure_options(args)
     _output_names(args)
     store_dir = Path(args.out).resolve().parent
-    tracks, metas = track.load_raw_tracks(args.parts, store_dir=store_dir if store_dir.is_dir() else None)
+    tracks, metas = formats.load_raw_tracks(args.parts, store_dir=store_dir if store_dir.is_dir() else None)
     first = metas[0]
     # The parts were measured undistorted: the scale points are carried through the same
     # calibration, exactly as `track` does (one code path, _scale).
@@ -688,9 +688,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_pois(args: argparse.Namespace) -> int:
     from flow import poi
+    from flow.driver import read_reference
     from flow.figures import poi_figure
     from flow.methods.klt import KLT
-    from flow.track import read_reference
 
     source = _open(args, need_time=False)
     undistort, _ = _undistorter(args, source)

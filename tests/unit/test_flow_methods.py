@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from flow import registry
+from flow.driver import track_dense, track_sparse
 from flow.io import FrameSource
 from flow.methods.klt import KLT
-from flow.track import measure, track_dense, track_sparse
+from flow.quality import measure
 
 # The sub-pixel test below skips these two: `deepflow` has its own, stricter accuracy tests
 # (tests/unit/test_deepflow.py), and `deepmatching` is an ablation whose matches sit on an
