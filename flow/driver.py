@@ -13,6 +13,8 @@ disk-backed :class:`~flow.storage.PoiStore` and are read back in blocks of frame
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import hashlib
 import queue
 import sys
@@ -20,8 +22,9 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -109,6 +112,220 @@ def _no_frames(source: FrameSource, start: int, stop: int | None) -> InputError:
     return InputError("no frame to measure: the video is empty")
 
 
+def _pixels(shape: tuple[int, ...], rows: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """A bool image of ``shape``, True at the given pixels."""
+    image = np.zeros(shape, bool)
+    image[rows, columns] = True
+    return image
+
+
+@dataclass(frozen=True)
+class _Regions:
+    """The POIs' regions: each POI's label, the labels ascending, each label's POIs and centroid."""
+
+    region_of: np.ndarray  # (P,) int64
+    labels: np.ndarray  # (R,)
+    groups: list[np.ndarray]  # R arrays of POI indices
+    centroids: np.ndarray  # (R, 2) x, y in ROI pixels
+
+
+def _regions(poi_xy: np.ndarray, mask: np.ndarray) -> _Regions:
+    """The regions of ``mask`` at the POIs: labels 1..N of an int mask; a bool mask is one region."""
+    region_of = np.asarray(mask)[poi_xy[:, 1], poi_xy[:, 0]].astype(np.int64)
+    labels = np.unique(region_of)
+    if labels.size > 1 and labels[0] <= 0:
+        raise ValueError(f"{int(np.sum(region_of <= 0))} POIs lie outside the labelled mask's regions")
+    groups = [np.flatnonzero(region_of == label) for label in labels]
+    poi_points = poi_xy.astype(np.float64)
+    centroids = np.array([poi_points[group].mean(axis=0) for group in groups])
+    return _Regions(region_of, labels, groups, centroids)
+
+
+def _per_region(values: Any, n_regions: int) -> np.ndarray:
+    """Per-frame values of R regions as (F, R); (F,) for one region."""
+    values = np.asarray(values, np.float64)
+    return values if n_regions > 1 else values[:, 0]
+
+
+class _MethodPool:
+    """``jobs`` method instances bound to the reference, lent out one chain of frames (one frame
+    for a method that does not chain) at a time, so that no two threads share one (OpenCV flow
+    objects are not thread-safe)."""
+
+    def __init__(self, factory: Callable[[], Any], jobs: int, reference: np.ndarray, mask: np.ndarray,
+                 read: np.ndarray | None) -> None:
+        self._idle: queue.SimpleQueue = queue.SimpleQueue()
+        self.methods = [factory() for _ in range(jobs)]
+        for method in self.methods:
+            if hasattr(method, "bind"):
+                method.bind(reference, mask, read=read)
+            self._idle.put(method)
+        # A method that solves frames from one another (``chain_length`` > 1) gets the frames of
+        # one chain, ``(index - reference_frame) // chain_length``, in order on one instance, from
+        # a restart: the chains are fixed by the frame index alone, so any --frames part or --jobs
+        # count gives the very numbers of one run (a part that starts inside a chain first solves
+        # the chain's earlier frames without keeping them). The reference frame begins a chain.
+        self.chain = max(1, int(getattr(self.methods[0], "chain_length", 0) or 0))
+
+    @contextlib.contextmanager
+    def lend(self) -> Iterator[Any]:
+        """An idle method instance, given back when the block ends."""
+        method = self._idle.get()
+        try:
+            yield method
+        finally:
+            self._idle.put(method)
+
+    def chain_counts(self) -> dict[str, float]:
+        """Where the time went, for a method that tracks frames from their predecessor: frames it
+        measured in full and frames it tracked (warm-up frames of a part included)."""
+        return {key: float(sum(getattr(m, key) for m in self.methods))
+                for key in CHAIN_COUNTS if hasattr(self.methods[0], key)}
+
+
+class _FrameResult(NamedTuple):
+    """One frame's measurement: the POIs' displacement (the camera's motion removed) and, per
+    region, the mean photometric residual, the camera's motion at the region's centroid and
+    the standard uncertainty of the mean displacement."""
+
+    dx: np.ndarray  # (P,) float32, px
+    dy: np.ndarray
+    residual: np.ndarray  # (R,) grey levels
+    camera: np.ndarray  # (R, 2) px, NaN without a background
+    sigma: np.ndarray  # (R, 2) px
+
+
+class _PoiReadout:
+    """Reads a method's flow of one frame against the reference at the POIs (a :class:`_FrameResult`)."""
+
+    def __init__(self, reference: np.ndarray, poi_xy: np.ndarray, regions: _Regions,
+                 background: Background | None) -> None:
+        self.reference = reference
+        self._columns, self._rows = poi_xy[:, 0], poi_xy[:, 1]
+        self.xs = self._columns.astype(np.float32)
+        self.ys = self._rows.astype(np.float32)
+        self._ref_values = reference[self._rows, self._columns].astype(np.float32)
+        self._regions = regions
+        self._lks = [LucasKanadeSigma(reference, poi_xy[group]) for group in regions.groups]
+        self._background = background
+        self._points = poi_xy.astype(np.float64)
+
+    def measure(self, method: Any, current: np.ndarray) -> _FrameResult:
+        flow = method.calc(self.reference, current)
+        dx = flow[self._rows, self._columns, 0].astype(np.float32)
+        dy = flow[self._rows, self._columns, 1].astype(np.float32)
+        error = sample(current, self.xs + dx, self.ys + dy) - self._ref_values
+        own = getattr(method, "last_sigmas_px", None) or {}
+        labels, groups = self._regions.labels, self._regions.groups
+        residual = np.array([mean_abs(error[group]) for group in groups])
+        sigma = np.array([own[int(label)] if int(label) in own else lk.sigma(error[group])
+                          for label, group, lk in zip(labels, groups, self._lks, strict=True)], np.float64)
+        cdx, cdy, camera = self._compensate(flow, dx, dy)
+        return _FrameResult(cdx, cdy, residual, camera, sigma)
+
+    def _compensate(self, flow: np.ndarray, dx: np.ndarray,
+                    dy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """POI flow minus the camera's motion, and that motion at each region's centroid."""
+        background = self._background
+        if background is None:
+            return dx, dy, np.full((len(self._regions.groups), 2), np.nan)
+        bx = flow[background.rows, background.columns, 0]
+        by = flow[background.rows, background.columns, 1]
+        mx, my = background.motion_at(bx, by, np.vstack([self._points, self._regions.centroids]))
+        n = len(self._points)
+        return ((dx - mx[:n]).astype(np.float32), (dy - my[:n]).astype(np.float32),
+                np.column_stack([mx[n:], my[n:]]).astype(np.float64))
+
+
+# A frame of a chain: index, time, grey image, and whether it is kept (False: it only warms
+# the chain up, before the frames asked for).
+_ChainFrame = tuple[int, float, np.ndarray, bool]
+_Solved = list[tuple[int, float, _FrameResult]]
+
+
+def _measure_chain(pool: _MethodPool, readout: _PoiReadout, items: list[_ChainFrame]) -> _Solved:
+    """Results of the kept frames of one chain, solved in order on one method instance."""
+    with pool.lend() as method:
+        if hasattr(method, "restart"):
+            method.restart()
+        results = []
+        for index, time_s, grey, keep in items:
+            result = readout.measure(method, grey)  # a warm-up frame too: the chain needs it
+            if keep:
+                results.append((index, time_s, result))
+        return results
+
+
+def _chain_of(index: int, reference_frame: int, chain: int) -> int:
+    """The chain of frame ``index``: chains of ``chain`` frames, the reference frame begins one."""
+    return (index - reference_frame) // chain
+
+
+def _chains(source: FrameSource, start: int, stop: int | None, undistort: Undistort, *,
+            reference_frame: int, chain: int) -> Iterator[list[_ChainFrame]]:
+    """Frames ``start:stop`` chain by chain; the first chain from its own first frame."""
+    first = max(0, reference_frame + _chain_of(start, reference_frame, chain) * chain)
+    group: list[_ChainFrame] = []
+    for index, time_s, grey in _frames(source, first, stop, undistort):
+        current = _chain_of(index, reference_frame, chain)
+        if group and current != _chain_of(group[-1][0], reference_frame, chain):
+            yield group
+            group = []
+        group.append((index, time_s, grey, index >= start))
+    if group:
+        yield group
+
+
+def _run_chains(chains: Iterator[list[_ChainFrame]], measure_chain: Callable[[list[_ChainFrame]], _Solved],
+                collect: Callable[[_Solved], None], *, jobs: int, chain: int) -> None:
+    """Solve every chain, ``jobs`` at a time, and ``collect`` their results in frame order."""
+    threads_before = cv2.getNumThreads()
+    try:
+        if jobs == 1:
+            for group in chains:
+                collect(measure_chain(group))
+        else:
+            # One OpenCV thread per job avoids oversubscribing the cores; a bounded queue (of
+            # frames, or of chains of frames) keeps memory bounded and results in frame order.
+            cv2.setNumThreads(1)
+            bound = 2 * jobs if chain == 1 else jobs + 1
+            with ThreadPoolExecutor(max_workers=jobs) as executor:
+                pending: deque = deque()
+                try:
+                    for group in chains:
+                        pending.append(executor.submit(measure_chain, group))
+                        if len(pending) >= bound:
+                            collect(pending.popleft().result())
+                    while pending:
+                        collect(pending.popleft().result())
+                except BaseException:
+                    executor.shutdown(wait=True, cancel_futures=True)
+                    raise
+    finally:
+        cv2.setNumThreads(threads_before)
+
+
+class _Collected:
+    """The kept frames' results in frame order: the POIs' rows in a disk store, the per-frame
+    values in lists."""
+
+    def __init__(self, n_points: int, store_dir: str | Path | None) -> None:
+        self.store = PoiStore(n_points, directory=store_dir)
+        self.frames: list[int] = []
+        self.times: list[float] = []
+        self.residuals: list[np.ndarray] = []
+        self.cameras: list[np.ndarray] = []
+        self.sigmas: list[np.ndarray] = []
+
+    def add(self, results: _Solved, bar: tqdm) -> None:
+        for index, time_s, result in results:
+            self.frames.append(index)
+            self.times.append(time_s)
+            self.store.append(result.dx, result.dy)
+            self.residuals.append(result.residual)
+            self.cameras.append(result.camera)
+            self.sigmas.append(result.sigma)
+            bar.update(1)
 
 
 def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndarray, *,
@@ -157,94 +374,13 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     start, stop = _stop(max_frames, frames)
     t0 = time.perf_counter()
     reference = read_reference(source, reference_frame, undistort, reference_average)
-    columns, rows_ = poi_xy[:, 0], poi_xy[:, 1]
-    xs = columns.astype(np.float32)
-    ys = rows_.astype(np.float32)
-    ref_values = reference[rows_, columns].astype(np.float32)
     if mask is None:
-        mask = np.zeros(reference.shape, bool)
-        mask[rows_, columns] = True
-    region_of = np.asarray(mask)[rows_, columns].astype(np.int64)
-    labels = np.unique(region_of)
-    if labels.size > 1 and labels[0] <= 0:
-        raise ValueError(f"{int(np.sum(region_of <= 0))} POIs lie outside the labelled mask's regions")
-    groups = [np.flatnonzero(region_of == label) for label in labels]
-    read = None
-    if background is not None:
-        read = np.zeros(reference.shape, bool)
-        read[background.rows, background.columns] = True
-    idle: queue.SimpleQueue = queue.SimpleQueue()
-    methods = [factory() for _ in range(jobs)]
-    for method in methods:
-        if hasattr(method, "bind"):
-            method.bind(reference, mask, read=read)
-        idle.put(method)
-    lks = [LucasKanadeSigma(reference, poi_xy[group]) for group in groups]
-    # A method that solves frames from one another (``chain_length`` > 1) gets the frames of
-    # one chain, ``(index - reference_frame) // chain_length``, in order on one instance, from
-    # a restart: the chains are fixed by the frame index alone, so any --frames part or --jobs
-    # count gives the very numbers of one run (a part that starts inside a chain first solves
-    # the chain's earlier frames without keeping them). The reference frame begins a chain.
-    chain = max(1, int(getattr(methods[0], "chain_length", 0) or 0))
-
-    poi_points = poi_xy.astype(np.float64)
-    centroids = np.array([poi_points[group].mean(axis=0) for group in groups])
-
-    def compensate(flow: np.ndarray, dx: np.ndarray, dy: np.ndarray):
-        """POI flow minus the camera's motion, and that motion at each region's centroid."""
-        if background is None:
-            return dx, dy, np.full((len(groups), 2), np.nan)
-        bx = flow[background.rows, background.columns, 0]
-        by = flow[background.rows, background.columns, 1]
-        mx, my = background.motion_at(bx, by, np.vstack([poi_points, centroids]))
-        n = len(poi_points)
-        return ((dx - mx[:n]).astype(np.float32), (dy - my[:n]).astype(np.float32),
-                np.column_stack([mx[n:], my[n:]]).astype(np.float64))
-
-    def measure_frame(method: Any, current: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                 np.ndarray, np.ndarray]:
-        """The POIs' displacement, and per region the mean photometric residual, the camera's
-        motion and the standard uncertainty of the mean displacement."""
-        flow = method.calc(reference, current)
-        dx = flow[rows_, columns, 0].astype(np.float32)
-        dy = flow[rows_, columns, 1].astype(np.float32)
-        error = sample(current, xs + dx, ys + dy) - ref_values
-        own = getattr(method, "last_sigmas_px", None) or {}
-        residual = np.array([mean_abs(error[group]) for group in groups])
-        sigma = np.array([own[int(label)] if int(label) in own else lk.sigma(error[group])
-                          for label, group, lk in zip(labels, groups, lks, strict=True)], np.float64)
-        cdx, cdy, camera = compensate(flow, dx, dy)
-        return cdx, cdy, residual, camera, sigma
-
-    def measure_chain(items: list[tuple[int, float, np.ndarray, bool]]) -> list[tuple[int, float, tuple]]:
-        """Results of the kept frames of one chain, solved in order on one method instance."""
-        method = idle.get()
-        try:
-            if hasattr(method, "restart"):
-                method.restart()
-            results = []
-            for index, time_s, grey, keep in items:
-                result = measure_frame(method, grey)  # a warm-up frame too: the chain needs it
-                if keep:
-                    results.append((index, time_s, result))
-            return results
-        finally:
-            idle.put(method)
-
-    def chain_of(index: int) -> int:
-        return (index - reference_frame) // chain
-
-    def chains() -> Iterator[list[tuple[int, float, np.ndarray, bool]]]:
-        first = max(0, reference_frame + chain_of(start) * chain)  # the chain's first frame
-        group: list[tuple[int, float, np.ndarray, bool]] = []
-        for index, time_s, grey in _frames(source, first, stop, undistort):
-            if group and chain_of(index) != chain_of(group[-1][0]):
-                yield group
-                group = []
-            group.append((index, time_s, grey, index >= start))
-        if group:
-            yield group
-
+        mask = _pixels(reference.shape, poi_xy[:, 1], poi_xy[:, 0])
+    regions = _regions(poi_xy, mask)
+    read = None if background is None else _pixels(reference.shape, background.rows, background.columns)
+    pool = _MethodPool(factory, jobs, reference, mask, read)
+    readout = _PoiReadout(reference, poi_xy, regions, background)
+    measure_chain = functools.partial(_measure_chain, pool, readout)
     in_range = start <= reference_frame and (stop is None or reference_frame < stop)
     offset = None
     if not in_range or reference_average > 1:
@@ -252,79 +388,35 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         # a mean of frames): measure it against itself, as the frame's own row would have
         # been (the first of its chain), so the offset removed is the same in a whole run and
         # in its parts.
-        own_dx, own_dy = measure_chain([(reference_frame, 0.0, reference, True)])[0][2][:2]
-        offset = (own_dx.astype(np.float64), own_dy.astype(np.float64))
+        own = measure_chain([(reference_frame, 0.0, reference, True)])[0][2]
+        offset = (own.dx.astype(np.float64), own.dy.astype(np.float64))
 
-    store = PoiStore(len(poi_xy), directory=store_dir)
-    frame_list: list[int] = []
-    times: list[float] = []
-    residuals: list[float] = []
-    cameras: list[tuple[float, float]] = []
-    sigmas: list[tuple[float, float]] = []
-
-    def collect(results: list[tuple[int, float, tuple]]) -> None:
-        for index, time_s, result in results:
-            frame_list.append(index)
-            times.append(time_s)
-            store.append(result[0], result[1])
-            residuals.append(result[2])
-            cameras.append(result[3])
-            sigmas.append(result[4])
-            bar.update(1)
-
+    collected = _Collected(len(poi_xy), store_dir)
     t1 = time.perf_counter()
-    bar = _progress(source, start, stop, progress)
-    threads_before = cv2.getNumThreads()
-    try:
-        if jobs == 1:
-            for group in chains():
-                collect(measure_chain(group))
-        else:
-            # One OpenCV thread per job avoids oversubscribing the cores; a bounded queue (of
-            # frames, or of chains of frames) keeps memory bounded and results in frame order.
-            cv2.setNumThreads(1)
-            bound = 2 * jobs if chain == 1 else jobs + 1
-            with ThreadPoolExecutor(max_workers=jobs) as pool:
-                pending: deque = deque()
-                try:
-                    for group in chains():
-                        pending.append(pool.submit(measure_chain, group))
-                        if len(pending) >= bound:
-                            collect(pending.popleft().result())
-                    while pending:
-                        collect(pending.popleft().result())
-                except BaseException:
-                    pool.shutdown(wait=True, cancel_futures=True)
-                    raise
-    finally:
-        cv2.setNumThreads(threads_before)
-        bar.close()
+    with _progress(source, start, stop, progress) as bar:
+        chains = _chains(source, start, stop, undistort, reference_frame=reference_frame, chain=pool.chain)
+        _run_chains(chains, measure_chain, functools.partial(collected.add, bar=bar), jobs=jobs, chain=pool.chain)
     t2 = time.perf_counter()
-    if not frame_list:
+    if not collected.frames:
         raise _no_frames(source, start, stop)
-    dx, dy = store.arrays()
-    frame_index = np.asarray(frame_list)
+    dx, dy = collected.store.arrays()
+    frame_index = np.asarray(collected.frames)
     if offset is None:
         row = int(np.flatnonzero(frame_index == reference_frame)[0])
         offset = (reference_offset(dx, row), reference_offset(dy, row))
-    # (F, R) per-frame values of R regions; (F,) for one region.
-    per_region = (lambda values: np.asarray(values, np.float64)) if len(groups) > 1 \
-        else (lambda values: np.asarray(values, np.float64)[:, 0])
-    camera = np.asarray(cameras, np.float64) if background is not None else None
-    sigma = np.asarray(sigmas, np.float64)
-    timings = _timings(t0, t1, t2, len(frame_list))
-    # Where the time went, for a method that tracks frames from their predecessor: frames it
-    # measured in full and frames it tracked (warm-up frames of a part included).
-    for key in CHAIN_COUNTS:
-        if hasattr(methods[0], key):
-            timings[key] = float(sum(getattr(m, key) for m in methods))
-    return Tracks(frame_index, np.asarray(times), dx, dy, per_region(residuals), xs, ys,
-                  reference_frame, offset[0], offset[1], timings,
-                  source.truncated, source.header_frames, image_digest(reference),
-                  camera_dx=None if camera is None else per_region(camera[..., 0]),
-                  camera_dy=None if camera is None else per_region(camera[..., 1]),
-                  sigma_dx=per_region(sigma[..., 0]), sigma_dy=per_region(sigma[..., 1]),
-                  region=region_of if len(groups) > 1 else None)
+    n_regions = len(regions.groups)
+    camera = np.asarray(collected.cameras, np.float64) if background is not None else None
+    sigma = np.asarray(collected.sigmas, np.float64)
+    return Tracks(frame=frame_index, time_s=np.asarray(collected.times), dx=dx, dy=dy,
+                  residual=_per_region(collected.residuals, n_regions), x_px=readout.xs, y_px=readout.ys,
+                  reference_frame=reference_frame, offset_dx=offset[0], offset_dy=offset[1],
+                  timings_s={**_timings(t0, t1, t2, len(frame_index)), **pool.chain_counts()},
+                  truncated=source.truncated, header_frames=source.header_frames,
+                  reference_digest=image_digest(reference),
+                  camera_dx=None if camera is None else _per_region(camera[..., 0], n_regions),
+                  camera_dy=None if camera is None else _per_region(camera[..., 1], n_regions),
+                  sigma_dx=_per_region(sigma[..., 0], n_regions), sigma_dy=_per_region(sigma[..., 1], n_regions),
+                  region=regions.region_of if n_regions > 1 else None)
 
 
 def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
@@ -370,7 +462,9 @@ def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
         raise _no_frames(source, start, stop)
     dx, dy = store.arrays()
     row = frame_list.index(reference_frame) if reference_frame in frame_list else 0
-    return Tracks(np.asarray(frame_list), np.asarray(times), dx, dy, np.asarray(residuals),
-                  xs.astype(np.float32), ys.astype(np.float32), reference_frame,
-                  reference_offset(dx, row), reference_offset(dy, row), _timings(t0, t1, t2, len(frame_list)),
-                  source.truncated, source.header_frames, image_digest(reference))
+    return Tracks(frame=np.asarray(frame_list), time_s=np.asarray(times), dx=dx, dy=dy,
+                  residual=np.asarray(residuals), x_px=xs.astype(np.float32), y_px=ys.astype(np.float32),
+                  reference_frame=reference_frame, offset_dx=reference_offset(dx, row),
+                  offset_dy=reference_offset(dy, row), timings_s=_timings(t0, t1, t2, len(frame_list)),
+                  truncated=source.truncated, header_frames=source.header_frames,
+                  reference_digest=image_digest(reference))

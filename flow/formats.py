@@ -151,11 +151,13 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
     timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts)
                for key in ("setup_s", "frames_s") + tuple(k for k in CHAIN_COUNTS if k in first.meta.get("timings", {}))}
     timings["frames_per_s"] = len(concat["frame"]) / max(timings["frames_s"], 1e-9)
-    tracks = Tracks(concat["frame"], concat["time_s"], dx, dy, concat["residual"],
-                    first.small["x_px"], first.small["y_px"], reference_frame,
-                    holder.small["offset_dx_px"].astype(np.float64), holder.small["offset_dy_px"].astype(np.float64),
-                    timings, any(p.meta["input"]["truncated"] for p in parts),
-                    int(first.meta["input"]["header_frames"]), first.meta["identity"]["reference_digest"],
+    tracks = Tracks(frame=concat["frame"], time_s=concat["time_s"], dx=dx, dy=dy, residual=concat["residual"],
+                    x_px=first.small["x_px"], y_px=first.small["y_px"], reference_frame=reference_frame,
+                    offset_dx=holder.small["offset_dx_px"].astype(np.float64),
+                    offset_dy=holder.small["offset_dy_px"].astype(np.float64),
+                    timings_s=timings, truncated=any(p.meta["input"]["truncated"] for p in parts),
+                    header_frames=int(first.meta["input"]["header_frames"]),
+                    reference_digest=first.meta["identity"]["reference_digest"],
                     camera_dx=concat.get("camera_dx_px"), camera_dy=concat.get("camera_dy_px"),
                     sigma_dx=concat.get("sigma_dx_px"), sigma_dy=concat.get("sigma_dy_px"),
                     region=first.small.get("region"))

@@ -40,9 +40,13 @@ class ColumnView:
         return whole if dtype is None else whole.astype(dtype)
 
 
-@dataclass
+@dataclass(kw_only=True)
 class Tracks:
-    """Raw per-POI measurement of a run (or of a range of its frames), before filtering."""
+    """Raw per-POI measurement of a run (or of a range of its frames), before filtering.
+
+    Keyword arguments only: most fields are arrays of like shapes, easily passed in the
+    wrong place.
+    """
 
     frame: np.ndarray  # (F,) int
     time_s: np.ndarray  # (F,)

@@ -103,9 +103,10 @@ def _tracks(dx: np.ndarray, dy: np.ndarray, residual: np.ndarray | None = None):
     from flow.tracks import Tracks
 
     n_frames, n_points = dx.shape
-    return Tracks(np.arange(n_frames), np.arange(n_frames) / 30.0, dx.astype(np.float32), dy.astype(np.float32),
-                  np.full(n_frames, 1.5) if residual is None else residual, np.arange(n_points, dtype=np.float32),
-                  np.zeros(n_points, np.float32), 0, np.zeros(n_points), np.zeros(n_points))
+    return Tracks(frame=np.arange(n_frames), time_s=np.arange(n_frames) / 30.0, dx=dx.astype(np.float32),
+                  dy=dy.astype(np.float32), residual=np.full(n_frames, 1.5) if residual is None else residual,
+                  x_px=np.arange(n_points, dtype=np.float32), y_px=np.zeros(n_points, np.float32),
+                  reference_frame=0, offset_dx=np.zeros(n_points), offset_dy=np.zeros(n_points))
 
 
 def test_half_background_mask_with_a_large_transient_stays_valid() -> None:
