@@ -14,7 +14,6 @@ file; anything else that goes wrong is a bug and shows its traceback.
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import os
 import sys
@@ -35,12 +34,10 @@ from flow.io import FrameSource, InputError, Roi, quiet_decoder_logs
 from flow.jsonfiles import json_number, load_json, shown
 from flow.modal import add_parser as add_modal_parser
 from flow.outputs import check_outputs, claimed
+from refflow import trackcsv
 from refflow.io import atomic_paths, json_text, versions, write_json
 
 EXIT_USAGE = 2
-CSV_COLUMNS = ("frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "valid",
-               "sigma_dx_px", "sigma_dy_px", "sigma_px",
-               "poi_kept_frac", "residual", "flow_spread_px", "camera_dx_px", "camera_dy_px")
 
 
 def _default_method() -> tuple[str, str | None]:
@@ -386,9 +383,7 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
     multi = tracks.region is not None
     results: list[tuple[int, Any]] = []
     sidecar: dict[str, Any] = {}
-    columns = list(CSV_COLUMNS)
-    if multi:
-        columns.insert(columns.index("time_s") + 1, "region")
+    columns = trackcsv.columns(regions=multi)
     if args.out:
         filter_mode = args.filter or ("none" if sparse else "paper")
         results = [(label, quality.measure(tracks.select(label), filter_enabled=filter_mode != "none",
@@ -422,13 +417,7 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
         if args.out:
             pending.pop(0).write_text(sidecar_text)
             with pending.pop(0).open("w", newline="") as handle:
-                writer = csv.DictWriter(handle, fieldnames=columns)
-                writer.writeheader()
-                per_region = [formats.iter_rows(result, mm_per_px, label if multi else None)
-                              for label, result in results]
-                for rows in zip(*per_region, strict=True):  # frame by frame, regions in label order
-                    for row in rows:
-                        writer.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in row.items()})
+                trackcsv.write(handle, [(label, formats.iter_rows(result, mm_per_px)) for label, result in results])
     return results
 
 
@@ -456,17 +445,7 @@ def _sidecar(args: argparse.Namespace, run: dict[str, Any], notes: list[str], re
         "quality": ({"frames_valid": int(every.sum()), "frames_invalid": int(len(every) - every.sum()),
                      "counted": "frames valid in every region (each region's own: see regions)"}
                     if multi else quality(first)),
-        "units": {"time_s": "s", "dx_px": "px, + = image right", "dy_px": "px, + = image down",
-                  "dx_mm": "mm", "dy_mm": "mm", "residual": "grey levels (0-255)",
-                  "sigma_dx_px": "px, standard uncertainty of dx_px (NaN on invalid frames)",
-                  "sigma_dy_px": "px, standard uncertainty of dy_px",
-                  "sigma_px": "px, standard uncertainty of the displacement vector, "
-                              "sqrt(sigma_dx_px^2 + sigma_dy_px^2)",
-                  "flow_spread_px": "px (1.4826 MAD over kept POIs)",
-                  "poi_kept_frac": "fraction of kept POIs measured and consistent with the frame's median",
-                  "camera_dx_px": "px, the camera's image motion at the POIs (removed from dx_px); "
-                                  "NaN without --background-mask",
-                  **({"region": "label of the mask region the row measures (1..N)"} if multi else {})},
+        "units": trackcsv.units(regions=multi),
         "columns": columns,
         "notes": notes + [(f"region {label}: {note}" if multi else note)
                           for label, result in results for note in result.filtered.notes],
