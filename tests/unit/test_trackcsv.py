@@ -80,3 +80,22 @@ def test_a_malformed_file_names_itself_and_the_problem(tmp_path, text, message) 
     with pytest.raises(ValueError, match="does not exist"):
         trackcsv.read(tmp_path / "missing.csv")
 
+
+def test_flow_and_analysis_read_through_it(tmp_path) -> None:
+    from analysis.readers import read_track
+    from flow.figures import read_measurements
+    from flow.io import InputError
+
+    one = _written(tmp_path, [(1, _rows(6, 0.0))])
+    flow_view = read_measurements(one)[0]
+    analysis_view = read_track(one)
+    assert np.array_equal(flow_view["time_s"], analysis_view["time_s"])
+    assert np.isnan(flow_view["dx_px"][2]) and analysis_view["valid"][2] == 0  # invalid frame
+    several = tmp_path / "several.csv"
+    with several.open("w", newline="") as handle:
+        trackcsv.write(handle, [(1, _rows(6, 0.0)), (2, _rows(6, 1.0))])
+    assert [data["region"] for data in read_measurements(several)] == [1, 2]
+    with pytest.raises(ValueError, match="2 regions"):
+        read_track(several)
+    with pytest.raises(InputError, match="no data rows"):
+        read_measurements(_written(tmp_path, [(1, [])]))
