@@ -18,9 +18,10 @@ from typing import Any
 
 import numpy as np
 
+from refflow import trackcsv
+
 SENSOR_COLUMNS = ("time_s", "dx_mm")
 TRUTH_COLUMNS = ("frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "occluded")
-TRACK_COLUMNS = ("frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "valid")
 _HEIGHT_COLUMN = re.compile(r"^dx_mm_z(\d{4})$")
 
 
@@ -124,13 +125,20 @@ def read_truth(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
 
 
 def read_track(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
-    """Track CSV; displacement cells may be NaN only on frames flagged ``valid=0``.
+    """Track CSV of one measurement point (format and reader: :mod:`refflow.trackcsv`), times
+    strictly increasing; displacement cells may be NaN only on frames flagged ``valid=0``.
 
     A ``dx_mm`` column that is NaN throughout (flow run without a scale) is
     accepted: callers then convert ``dx_px`` with the render's ``mm_per_px``
     (see :func:`track_mm`).
     """
-    cols = read_csv_columns(path, TRACK_COLUMNS, finite=("frame", "time_s", "valid"))
+    regions = trackcsv.read(path)
+    if len(regions) > 1:
+        raise ValueError(f"{path}: holds {len(regions)} regions (a region column): evaluate one "
+                         "measurement point, the CSV of a run of one region")
+    (cols,) = regions.values()
+    if np.any(np.diff(cols["time_s"]) <= 0):
+        raise ValueError(f"{path}: column 'time_s' is not strictly increasing")
     valid = cols["valid"] != 0
     names = ("dx_px",) if np.all(np.isnan(cols["dx_mm"])) else ("dx_px", "dx_mm")
     for name in names:

@@ -14,7 +14,6 @@ file; anything else that goes wrong is a bug and shows its traceback.
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import os
 import sys
@@ -35,12 +34,10 @@ from flow.io import FrameSource, InputError, Roi, quiet_decoder_logs
 from flow.jsonfiles import json_number, load_json, shown
 from flow.modal import add_parser as add_modal_parser
 from flow.outputs import check_outputs, claimed
+from refflow import trackcsv
 from refflow.io import atomic_paths, json_text, versions, write_json
 
 EXIT_USAGE = 2
-CSV_COLUMNS = ("frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "valid",
-               "sigma_dx_px", "sigma_dy_px", "sigma_px",
-               "poi_kept_frac", "residual", "flow_spread_px", "camera_dx_px", "camera_dy_px")
 
 
 def _default_method() -> tuple[str, str | None]:
@@ -372,31 +369,29 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
     renamed (the CSV last), so a failure or Ctrl-C leaves none of them. A run of several
     regions filters and averages each on its own and writes one row per frame and region.
     """
-    from flow import track
+    from flow import formats, quality, storage
 
     raw = getattr(args, "raw_tracks", None)
     sparse = run["method_kind"] == "sparse"
     multi = tracks.region is not None
     results: list[tuple[int, Any]] = []
     sidecar: dict[str, Any] = {}
-    columns = list(CSV_COLUMNS)
-    if multi:
-        columns.insert(columns.index("time_s") + 1, "region")
+    columns = trackcsv.columns(regions=multi)
     if args.out:
         filter_mode = args.filter or ("none" if sparse else "paper")
-        results = [(label, track.measure(tracks.select(label), filter_enabled=filter_mode != "none",
-                                         average="median" if filter_mode == "median" else "mean",
-                                         threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
-                                         # KLT mixes background and structure features by design (the
-                                         # paper's baseline): their disagreement is no sign of a blocked view
-                                         check_coherence=not sparse))
+        results = [(label, quality.measure(tracks.select(label), filter_enabled=filter_mode != "none",
+                                           average="median" if filter_mode == "median" else "mean",
+                                           threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
+                                           # KLT mixes background and structure features by design (the
+                                           # paper's baseline): their disagreement is no sign of a blocked view
+                                           check_coherence=not sparse))
                    for label in tracks.labels()]
         sidecar = _sidecar(args, run, notes, results, mm_per_px, scale_source, filter_mode, columns, started)
     sidecar_text = json_text(sidecar) if args.out else ""  # a bad value fails before any file exists
     with atomic_paths(*_output_names(args)) as temporaries:
         pending = list(temporaries)
         if raw:
-            track.save_raw_tracks(pending.pop(0), tracks, {**run, "notes": notes, "versions": versions()})
+            formats.save_raw_tracks(pending.pop(0), tracks, {**run, "notes": notes, "versions": versions()})
         if args.save_poi_tracks:
             roi = run["roi"]
             kept = np.zeros(len(tracks.x_px), bool)
@@ -406,7 +401,7 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
                 kept[where] = result.filtered.kept
                 mcr[where] = result.filtered.mcr
             valid = np.column_stack([result.valid for _, result in results])
-            track.write_npz(pending.pop(0), {
+            storage.write_npz(pending.pop(0), {
                 "frame": tracks.frame, "time_s": tracks.time_s, "dx_px": tracks.dx, "dy_px": tracks.dy,
                 "x_px": tracks.x_px + roi["x"], "y_px": tracks.y_px + roi["y"],
                 "valid": valid if multi else valid[:, 0], "kept": kept, "mcr": mcr, "residual": tracks.residual,
@@ -415,13 +410,7 @@ def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], n
         if args.out:
             pending.pop(0).write_text(sidecar_text)
             with pending.pop(0).open("w", newline="") as handle:
-                writer = csv.DictWriter(handle, fieldnames=columns)
-                writer.writeheader()
-                per_region = [track.iter_rows(result, mm_per_px, label if multi else None)
-                              for label, result in results]
-                for rows in zip(*per_region, strict=True):  # frame by frame, regions in label order
-                    for row in rows:
-                        writer.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in row.items()})
+                trackcsv.write(handle, [(label, formats.iter_rows(result, mm_per_px)) for label, result in results])
     return results
 
 
@@ -449,17 +438,7 @@ def _sidecar(args: argparse.Namespace, run: dict[str, Any], notes: list[str], re
         "quality": ({"frames_valid": int(every.sum()), "frames_invalid": int(len(every) - every.sum()),
                      "counted": "frames valid in every region (each region's own: see regions)"}
                     if multi else quality(first)),
-        "units": {"time_s": "s", "dx_px": "px, + = image right", "dy_px": "px, + = image down",
-                  "dx_mm": "mm", "dy_mm": "mm", "residual": "grey levels (0-255)",
-                  "sigma_dx_px": "px, standard uncertainty of dx_px (NaN on invalid frames)",
-                  "sigma_dy_px": "px, standard uncertainty of dy_px",
-                  "sigma_px": "px, standard uncertainty of the displacement vector, "
-                              "sqrt(sigma_dx_px^2 + sigma_dy_px^2)",
-                  "flow_spread_px": "px (1.4826 MAD over kept POIs)",
-                  "poi_kept_frac": "fraction of kept POIs measured and consistent with the frame's median",
-                  "camera_dx_px": "px, the camera's image motion at the POIs (removed from dx_px); "
-                                  "NaN without --background-mask",
-                  **({"region": "label of the mask region the row measures (1..N)"} if multi else {})},
+        "units": trackcsv.units(regions=multi),
         "columns": columns,
         "notes": notes + [(f"region {label}: {note}" if multi else note)
                           for label, result in results for note in result.filtered.notes],
@@ -495,7 +474,7 @@ def available_cores() -> int:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
-    from flow import poi, track
+    from flow import driver, poi
 
     started = time.perf_counter()
     notes: list[str] = []
@@ -558,17 +537,17 @@ def cmd_track(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         if sparse:
-            tracks = track.track_sparse(source, method, mask, reference_frame=args.reference_frame,
-                                        reference_average=args.reference_average,
-                                        max_frames=args.max_frames, undistort=undistort,
-                                        progress=not args.no_progress, store_dir=store_dir)
+            tracks = driver.track_sparse(source, method, mask, reference_frame=args.reference_frame,
+                                         reference_average=args.reference_average,
+                                         max_frames=args.max_frames, undistort=undistort,
+                                         progress=not args.no_progress, store_dir=store_dir)
         else:
-            tracks = track.track_dense(source, lambda: _build_method(name, params), poi_xy,
-                                       reference_frame=args.reference_frame,
-                                       reference_average=args.reference_average, jobs=args.jobs,
-                                       max_frames=args.max_frames, frames=frames, undistort=undistort,
-                                       progress=not args.no_progress, store_dir=store_dir,
-                                       background=background, mask=labels)
+            tracks = driver.track_dense(source, lambda: _build_method(name, params), poi_xy,
+                                        reference_frame=args.reference_frame,
+                                        reference_average=args.reference_average, jobs=args.jobs,
+                                        max_frames=args.max_frames, frames=frames, undistort=undistort,
+                                        progress=not args.no_progress, store_dir=store_dir,
+                                        background=background, mask=labels)
     notes.extend(source.notes)
     for warning in caught:
         notes.append(str(warning.message))
@@ -636,14 +615,14 @@ def _counts(results: list[tuple[int, Any]]) -> str:
 
 
 def cmd_merge(args: argparse.Namespace) -> int:
-    from flow import track
+    from flow import formats
 
     started = time.perf_counter()
     _check_scale_options(args)
     _check_measure_options(args)
     _output_names(args)
     store_dir = Path(args.out).resolve().parent
-    tracks, metas = track.load_raw_tracks(args.parts, store_dir=store_dir if store_dir.is_dir() else None)
+    tracks, metas = formats.load_raw_tracks(args.parts, store_dir=store_dir if store_dir.is_dir() else None)
     first = metas[0]
     # The parts were measured undistorted: the scale points are carried through the same
     # calibration, exactly as `track` does (one code path, _scale).
@@ -681,9 +660,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_pois(args: argparse.Namespace) -> int:
     from flow import poi
+    from flow.driver import read_reference
     from flow.figures import poi_figure
     from flow.methods.klt import KLT
-    from flow.track import read_reference
 
     source = _open(args, need_time=False)
     undistort, _ = _undistorter(args, source)

@@ -7,7 +7,6 @@ with each series' dominant frequency.
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 from pathlib import Path
@@ -17,6 +16,7 @@ import cv2
 import numpy as np
 
 from flow.io import InputError, as_uint8
+from refflow import trackcsv
 from refflow.io import atomic_path
 
 # BGR colours of regions 1, 2, ... (a colour-blind-safe palette, Okabe-Ito), repeated beyond 8.
@@ -64,30 +64,19 @@ def poi_figure(reference: np.ndarray, poi_xy: np.ndarray, corners_xy: np.ndarray
 
 
 def read_measurements(path: str | Path) -> list[dict[str, Any]]:
-    """Columns of a ``refflow track`` CSV, invalid frames as NaN, and its method (from the
-    sidecar): one dict per region (one for a run of one region), in label order.
+    """Columns of a ``refflow track`` CSV (read by :func:`refflow.trackcsv.read`), invalid
+    frames as NaN, and its method (from the sidecar): one dict per region (one for a run of
+    one region), in label order.
 
     Each holds ``time_s``, ``dx_px``, ``dy_px``, ``dx_mm``, ``dy_mm`` arrays, ``has_mm`` (a
     scale was given), ``label`` (the method; "method region K" in a run of several) and
     ``region`` (the label K, None for a run of one region).
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"CSV {str(path)!r} does not exist: pass the --out of `refflow track`")
-    with path.open(newline="") as handle:
-        reader = csv.DictReader(handle)
-        missing = {"time_s", "dx_px", "dy_px", "valid"} - set(reader.fieldnames or [])
-        if missing:
-            raise InputError(f"{str(path)!r} is not a `refflow track` CSV (no {', '.join(sorted(missing))} column)")
-        labelled = "region" in (reader.fieldnames or [])
-        rows = list(reader)
-    groups: dict[int | None, list[dict[str, str]]] = {}
-    for row in rows:
-        try:
-            key = int(row["region"]) if labelled else None
-        except (TypeError, ValueError):
-            raise InputError(f"{str(path)!r}: region {row.get('region')!r} is not a label (1..N)") from None
-        groups.setdefault(key, []).append(row)
+    try:
+        regions = trackcsv.read(path)
+    except trackcsv.TrackCsvError as err:
+        raise InputError(str(err)) from None
     method = path.stem
     sidecar = path.with_suffix(".json")
     if sidecar.is_file():
@@ -96,22 +85,17 @@ def read_measurements(path: str | Path) -> list[dict[str, Any]]:
         except (OSError, ValueError, AttributeError):
             pass  # the label is cosmetic; the CSV itself was read
     out = []
-    for key in sorted(groups, key=lambda k: -1 if k is None else k):
-        part = groups[key]
-        if len(part) < 4:
+    for key, columns in regions.items():
+        if len(columns["time_s"]) < 4:
             where = "" if key is None else f" in region {key}"
-            raise InputError(f"{str(path)!r} has {len(part)} frames{where}: a spectrum needs at least 4")
-        data: dict[str, Any] = {}
-        valid = np.array([row["valid"] == "1" for row in part])
-        for column in ("time_s", "dx_px", "dy_px", "dx_mm", "dy_mm"):
-            values = np.array([float(row.get(column) or "nan") for row in part])
-            data[column] = values if column == "time_s" else np.where(valid, values, np.nan)
+            raise InputError(f"{str(path)!r} has {len(columns['time_s'])} frames{where}: a spectrum needs at least 4")
+        valid = columns["valid"] != 0
+        data: dict[str, Any] = {name: columns[name] if name == "time_s" else np.where(valid, columns[name], np.nan)
+                                for name in ("time_s", "dx_px", "dy_px", "dx_mm", "dy_mm")}
         data["has_mm"] = bool(np.isfinite(data["dx_mm"]).any())
         data["label"] = method if key is None else f"{method} region {key}"
         data["region"] = key
         out.append(data)
-    if not out:
-        raise InputError(f"{str(path)!r} has 0 frames: a spectrum needs at least 4")
     return out
 
 

@@ -1,6 +1,7 @@
 """Neutral infrastructure shared by ``sim``, ``flow`` and ``analysis``.
 
-File plumbing (atomic writes, JSON sidecars, config hashing, package versions) and
+File plumbing (atomic writes, JSON sidecars, config hashing, package versions), the track
+CSV format that ``flow`` writes and ``flow`` and ``analysis`` read (``refflow.trackcsv``), and
 output-only modal identification (``refflow.modal``: from a response alone, no model):
 nothing that could let the measurement see the ground truth. It imports none of the three.
 """

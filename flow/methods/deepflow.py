@@ -71,7 +71,7 @@ def _reach_of(match: MatchParams, whole_shape: tuple[int, ...]) -> MatchParams:
     return dataclasses.replace(match, ngh_rad=search_radius(match, whole_shape))
 
 
-# Frames of one chain (see the driver, :func:`flow.track.track_dense`) are measured in order.
+# Frames of one chain (see the driver, :func:`flow.driver.track_dense`) are measured in order.
 # The first frame of a chain gets the full measurement: DeepMatching + DeepFlow, the member's
 # edges fitted from the dense flow, and the check that they match the POIs better. Where the
 # member's edges won, the next frames are tracked from the previous frame's member motion

@@ -420,12 +420,12 @@ def test_scale_file_gives_the_mm_columns(clip, tmp_path) -> None:
 
 def test_a_real_bug_shows_its_traceback(clip, tmp_path, monkeypatch) -> None:
     """Only the tool's own input errors become one-line messages; a ValueError inside is a bug."""
-    from flow import track
+    from flow import quality
 
     def broken(*args, **kwargs):
         raise ValueError("internal slip")
 
-    monkeypatch.setattr(track, "measure", broken)
+    monkeypatch.setattr(quality, "measure", broken)
     out = tmp_path / "out.csv"
     with pytest.raises(ValueError, match="internal slip"):
         main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis",
@@ -453,13 +453,13 @@ def test_failed_sidecar_leaves_no_output_at_all(clip, tmp_path, monkeypatch) -> 
 
 
 def test_failed_poi_tracks_leave_no_csv(clip, tmp_path, monkeypatch) -> None:
-    from flow import track
+    from flow import storage
 
     def failing_write_npz(path, arrays, **kwargs):
         Path(path).write_bytes(b"PK half an archive")
         raise RuntimeError("writer crashed")
 
-    monkeypatch.setattr(track, "write_npz", failing_write_npz)
+    monkeypatch.setattr(storage, "write_npz", failing_write_npz)
     with pytest.raises(RuntimeError, match="writer crashed"):
         main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--max-frames", "4",
               "--out", str(tmp_path / "out.csv"), "--save-poi-tracks", str(tmp_path / "poi.npz"), "--no-progress"])
@@ -512,18 +512,18 @@ def test_sigterm_leaves_nothing(clip, tmp_path, monkeypatch, capsys, when) -> No
     import os
     import signal
 
-    from flow import track
+    from flow import storage
 
     if when == "tracking":
         _at_sixth_frame(monkeypatch, lambda: os.kill(os.getpid(), signal.SIGTERM))
     else:
-        real_write = track.write_npz
+        real_write = storage.write_npz
 
         def write_then_terminated(path, arrays, **kwargs):
             real_write(path, arrays, **kwargs)
             os.kill(os.getpid(), signal.SIGTERM)
 
-        monkeypatch.setattr(track, "write_npz", write_then_terminated)
+        monkeypatch.setattr(storage, "write_npz", write_then_terminated)
     rc = main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--jobs", "2",
                "--out", str(tmp_path / "out.csv"), "--save-poi-tracks", str(tmp_path / "p.npz"),
                "--raw-tracks", str(tmp_path / "raw.npz"), "--no-progress"])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from flow.filtering import filter_and_average, reference_offset
-from flow.track import flag_invalid
+from flow.quality import flag_invalid
 
 
 def planted(seed: int = 0):
@@ -87,7 +87,7 @@ def test_flag_invalid_catches_a_blocked_view() -> None:
 
 def test_incoherent_frames_are_flagged_even_with_a_low_residual():
     """An occluder as bright as the structure: residual stays low, the POIs scatter."""
-    from flow.track import flag_incoherent, poi_spread
+    from flow.quality import flag_incoherent, poi_spread
 
     rng = np.random.default_rng(3)
     frames, points = 40, 200
@@ -102,17 +102,18 @@ def test_incoherent_frames_are_flagged_even_with_a_low_residual():
 
 
 def _tracks(dx: np.ndarray, dy: np.ndarray, residual: np.ndarray | None = None):
-    from flow.track import Tracks
+    from flow.tracks import Tracks
 
     n_frames, n_points = dx.shape
-    return Tracks(np.arange(n_frames), np.arange(n_frames) / 30.0, dx.astype(np.float32), dy.astype(np.float32),
-                  np.full(n_frames, 1.5) if residual is None else residual, np.arange(n_points, dtype=np.float32),
-                  np.zeros(n_points, np.float32), 0, np.zeros(n_points), np.zeros(n_points))
+    return Tracks(frame=np.arange(n_frames), time_s=np.arange(n_frames) / 30.0, dx=dx.astype(np.float32),
+                  dy=dy.astype(np.float32), residual=np.full(n_frames, 1.5) if residual is None else residual,
+                  x_px=np.arange(n_points, dtype=np.float32), y_px=np.zeros(n_points, np.float32),
+                  reference_frame=0, offset_dx=np.zeros(n_points), offset_dy=np.zeros(n_points))
 
 
 def test_half_background_mask_with_a_large_transient_stays_valid() -> None:
     """Background POIs in the mask stay put while the structure jumps: that is motion, not occlusion."""
-    from flow.track import measure
+    from flow.quality import measure
 
     rng = np.random.default_rng(4)
     frames = 120
@@ -130,7 +131,7 @@ def test_half_background_mask_with_a_large_transient_stays_valid() -> None:
 
 def test_bright_occluder_is_still_flagged_with_background_in_the_mask() -> None:
     """The same mask, and frames whose flow is garbage everywhere: flagged, and the filters unspoiled."""
-    from flow.track import measure
+    from flow.quality import measure
 
     rng = np.random.default_rng(5)
     frames = 120
@@ -149,7 +150,7 @@ def test_bright_occluder_is_still_flagged_with_background_in_the_mask() -> None:
 
 def test_poi_kept_frac_follows_each_frame() -> None:
     """The fraction of kept POIs that are measured and agree with the frame: per frame, not per POI."""
-    from flow.track import measure
+    from flow.quality import measure
 
     rng = np.random.default_rng(6)
     frames, points = 60, 100
@@ -170,7 +171,8 @@ def test_poi_kept_frac_follows_each_frame() -> None:
 def test_filters_in_small_blocks_match_one_block(monkeypatch) -> None:
     """Long runs are filtered block by block from disk; the numbers must not depend on the blocks."""
     import flow.filtering as filtering
-    from flow.track import DiskMatrix, PoiStore, measure
+    from flow.quality import measure
+    from flow.storage import DiskMatrix, PoiStore
 
     truth, dx, dy = planted()
     dx[60:, 7] = np.nan

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from flow import registry
+from flow.driver import track_dense, track_sparse
 from flow.io import FrameSource
 from flow.methods.base import CROP_MARGIN_PX
 from flow.methods.klt import KLT
-from flow.track import measure, track_dense, track_sparse
+from flow.quality import measure
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -1,0 +1,203 @@
+"""Quality flags and the measurement of a run's tracks.
+
+A frame is flagged invalid when its photometric residual is far above its baseline (the
+view blocked), when no POI was measured, or when the POIs that survive the eq. 10-12
+filters scatter far more than usual; :func:`measure` alternates the flags and the
+filtering until they settle, then reports the averaged displacement, each frame's
+consistent fraction of POIs and the uncertainty of the mean.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+
+import numpy as np
+
+from flow.filtering import (
+    MCR_THRESHOLD,
+    THRESHOLD_RATIO,
+    FilterResult,
+    filter_and_average,
+    row_blocks,
+)
+from flow.robust import MAD_TO_SIGMA
+from flow.tracks import Measurement, Tracks
+
+# Quality thresholds of :func:`measure`, the defaults of the flags it calls.
+# A frame's photometric residual (mean |grey difference| at the POIs) counts as a blocked
+# view only far out in the tail of the clip's own residuals: RESIDUAL_K_MAD robust sigmas
+# above their median (noise and codec flicker stay well inside), RESIDUAL_RATIO times the
+# median (a steady clip's tiny MAD alone would flag ordinary variation) and RESIDUAL_FLOOR
+# grey levels (below that it is sensor noise whatever the baseline).
+RESIDUAL_K_MAD = 8.0
+RESIDUAL_RATIO = 2.5
+RESIDUAL_FLOOR = 3.0
+# The kept POIs scatter as if the flow failed (an occluder as bright as the structure):
+# SPREAD_RATIO times their median spread, and at least SPREAD_FLOOR_PX px, so that POIs
+# agreeing to hundredths of a pixel are not flagged for a tenth.
+SPREAD_RATIO = 4.0
+SPREAD_FLOOR_PX = 1.5
+# The band within which a POI agrees with its frame's median (poi_kept_frac): BAND_RATIO
+# times the median spread of the valid frames, at least BAND_FLOOR_PX px, widened to
+# BAND_RELATIVE of the median displacement so that a member that rotates or bends within
+# the mask keeps its POIs at large amplitude.
+BAND_RATIO = 3.0
+BAND_FLOOR_PX = 0.5
+BAND_RELATIVE = 0.25
+
+
+def flag_invalid(residual: np.ndarray, *, k_mad: float = RESIDUAL_K_MAD, ratio: float = RESIDUAL_RATIO,
+                 floor: float = RESIDUAL_FLOOR) -> tuple[np.ndarray, float]:
+    """Frames whose photometric residual is far above its robust baseline (view blocked).
+
+    A frame is invalid when its residual exceeds ``max(median + k_mad * sigma,
+    ratio * median, floor)`` with ``sigma = 1.4826 * MAD`` over all frames, or is NaN.
+    Returns ``(valid, threshold)``.
+    """
+    residual = np.asarray(residual, float)
+    finite = residual[np.isfinite(residual)]
+    if finite.size == 0:
+        return np.zeros(residual.shape, bool), float("nan")
+    median = float(np.median(finite))
+    sigma = MAD_TO_SIGMA * float(np.median(np.abs(finite - median)))
+    threshold = max(median + k_mad * sigma, ratio * median, floor)
+    return np.isfinite(residual) & (residual <= threshold), threshold
+
+
+class _NanQuiet:
+    """Frames where every POI is NaN give NaN statistics, without RuntimeWarnings."""
+
+    def __enter__(self) -> None:
+        self._errstate = np.errstate(all="ignore")
+        self._errstate.__enter__()
+        self._warnings = warnings.catch_warnings()
+        self._warnings.__enter__()
+        warnings.simplefilter("ignore", RuntimeWarning)
+
+    def __exit__(self, *exc: object) -> None:
+        self._warnings.__exit__(*exc)
+        self._errstate.__exit__(*exc)
+
+
+def poi_spread(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    """Per frame, the robust spread (px) of the POI displacements: 1.4826 x MAD, x and y combined.
+
+    POIs on one structural member move almost alike; an occluder, a lost view
+    or a failed flow scatters them.
+    """
+    spread = np.full(dx.shape[0], np.nan)
+    if dx.shape[1] == 0:
+        return spread
+    with _NanQuiet():
+        mad_x = np.nanmedian(np.abs(dx - np.nanmedian(dx, axis=1, keepdims=True)), axis=1)
+        mad_y = np.nanmedian(np.abs(dy - np.nanmedian(dy, axis=1, keepdims=True)), axis=1)
+    return MAD_TO_SIGMA * np.hypot(mad_x, mad_y)
+
+
+def consistent_fraction(dx: np.ndarray, dy: np.ndarray, *, band_px: float,
+                        relative: float = BAND_RELATIVE) -> np.ndarray:
+    """Per frame, the fraction of POIs whose displacement is finite and agrees with the frame's median.
+
+    A POI agrees when its 2-D distance from the frame's median displacement is
+    at most ``max(band_px, relative * |median|)``: the relative term lets a
+    structure that rotates or bends within the mask keep its POIs at large
+    amplitude, while a blocked view or a failed flow scatters them out.
+    """
+    if dx.shape[1] == 0:
+        return np.zeros(dx.shape[0])
+    with _NanQuiet():
+        median_x = np.nanmedian(dx, axis=1, keepdims=True)
+        median_y = np.nanmedian(dy, axis=1, keepdims=True)
+        distance = np.hypot(dx - median_x, dy - median_y)
+        band = np.maximum(band_px, relative * np.hypot(median_x, median_y))
+        agree = np.isfinite(distance) & (distance <= band)
+    return agree.sum(axis=1) / dx.shape[1]
+
+
+def flag_incoherent(spread: np.ndarray, *, ratio: float = SPREAD_RATIO,
+                    floor_px: float = SPREAD_FLOOR_PX) -> np.ndarray:
+    """Frames whose POIs disagree far more than usual: ``spread > max(ratio * median, floor_px)``.
+
+    Catches an occluder whose brightness happens to match the structure's
+    (the photometric residual then stays low while the flow is garbage).
+    NaN spread (no POI measured) counts as coherent here; ``all_nan`` handles it.
+    """
+    finite = spread[np.isfinite(spread)]
+    if finite.size == 0:
+        return np.zeros(spread.shape, bool)
+    threshold = max(ratio * float(np.median(finite)), floor_px)
+    return np.isfinite(spread) & (spread > threshold)
+
+
+def _per_frame(tracks: Tracks, columns: np.ndarray | None,
+               statistic: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """``statistic(dx_block, dy_block)`` of every frame, offsets removed, read in blocks."""
+    out = np.full(len(tracks.frame), np.nan)
+    for rows, bx, by in row_blocks(tracks.dx, tracks.dy, tracks.offset_dx, tracks.offset_dy, columns):
+        out[rows] = statistic(bx, by)
+    return out
+
+
+def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean",
+            threshold_ratio: float = THRESHOLD_RATIO, threshold_px: float | None = None,
+            mcr_threshold: float = MCR_THRESHOLD, residual_ratio: float = RESIDUAL_RATIO,
+            residual_k_mad: float = RESIDUAL_K_MAD, residual_floor: float = RESIDUAL_FLOOR,
+            spread_ratio: float = SPREAD_RATIO, spread_floor_px: float = SPREAD_FLOOR_PX,
+            check_coherence: bool = True, max_rounds: int = 3, band_ratio: float = BAND_RATIO,
+            band_floor_px: float = BAND_FLOOR_PX, band_relative: float = BAND_RELATIVE) -> Measurement:
+    """Quality flags, eq. (10)-(12) filtering and averaging of a run's tracks.
+
+    A frame is invalid when its photometric residual is far above its baseline
+    (:func:`flag_invalid`), when no POI was measured, or, with
+    ``check_coherence``, when the POIs that survive the filters scatter far more
+    than usual (:func:`flag_incoherent`). The coherence check must only look at
+    the surviving POIs (background POIs in the mask stay put while the
+    structure moves, which is no sign of a blocked view), and the filters must
+    only use valid frames, so the two alternate until the flags settle (at most
+    ``max_rounds`` rounds).
+
+    ``poi_kept_frac`` is, per frame, the :func:`consistent_fraction` of the
+    surviving POIs with a band of ``max(band_ratio * median spread,
+    band_floor_px)``.
+    """
+    photometric, threshold = flag_invalid(tracks.residual, k_mad=residual_k_mad, ratio=residual_ratio,
+                                          floor=residual_floor)
+    measured = _per_frame(tracks, None, lambda bx, by: np.isfinite(bx).any(axis=1)) > 0
+    base = photometric & measured
+    offset = (tracks.offset_dx, tracks.offset_dy)
+
+    def run_filters(valid: np.ndarray) -> FilterResult:
+        return filter_and_average(tracks.dx, tracks.dy, valid=valid, offset=offset,
+                                  threshold_ratio=threshold_ratio, threshold_px=threshold_px,
+                                  mcr_threshold=mcr_threshold, average=average, enabled=filter_enabled)
+
+    valid = base.copy()
+    filtered = run_filters(valid)
+    spread = _per_frame(tracks, filtered.kept, poi_spread)
+    for _ in range(max_rounds if check_coherence else 0):
+        flagged = base & ~flag_incoherent(spread, ratio=spread_ratio, floor_px=spread_floor_px)
+        if np.array_equal(flagged, valid):
+            break
+        valid = flagged
+        filtered = run_filters(valid)
+        spread = _per_frame(tracks, filtered.kept, poi_spread)
+    typical = spread[valid & np.isfinite(spread)]
+    band = max(band_ratio * float(np.median(typical)) if typical.size else 0.0, band_floor_px)
+    kept_frac = _per_frame(tracks, filtered.kept, lambda bx, by: consistent_fraction(
+        bx, by, band_px=band, relative=band_relative))
+    if tracks.sigma_dx is not None and tracks.sigma_dy is not None:
+        sigma_dx, sigma_dy = np.asarray(tracks.sigma_dx, float), np.asarray(tracks.sigma_dy, float)
+    else:
+        # Features followed on their own (KLT): the standard error of their mean.
+        sigma_dx = _per_frame(tracks, filtered.kept, lambda bx, by: _standard_error(bx))
+        sigma_dy = _per_frame(tracks, filtered.kept, lambda bx, by: _standard_error(by))
+    return Measurement(tracks, filtered, valid, kept_frac, spread, threshold, band, sigma_dx, sigma_dy)
+
+
+def _standard_error(block: np.ndarray) -> np.ndarray:
+    """Per row, 1.4826 MAD / sqrt(n) of the finite values (NaN with fewer than 2)."""
+    with _NanQuiet():
+        n = np.isfinite(block).sum(axis=1)
+        mad = np.nanmedian(np.abs(block - np.nanmedian(block, axis=1, keepdims=True)), axis=1)
+        return np.where(n >= 2, MAD_TO_SIGMA * mad / np.sqrt(np.maximum(n, 1)), np.nan)
