@@ -734,6 +734,166 @@ def _modal_step_matrices(omega: np.ndarray, zeta: np.ndarray, dt: float
     return transition, zoh
 
 
+@dataclass
+class _Forcing:
+    """Per-sample forcing of one run: harmonic point forces, base acceleration, impulses and
+    the pluck's hold (see :func:`run_simulation`)."""
+
+    harmonic: list[Any]  # the harmonic excitation entries
+    harmonic_ctrl: np.ndarray  # (samples, harmonic) force amplitudes, N
+    accel: np.ndarray  # (samples,) base acceleration, m/s^2 (zeros without ambient)
+    base_vector: np.ndarray | None  # generalized force of a unit base acceleration (ambient only)
+    impulses: dict[int, np.ndarray]  # sample -> velocity jump of the joints
+    hold_until: int  # the pluck holds the beam up to this sample (-1: no pluck)
+    hold_qpos: np.ndarray  # (n,) joint angles of the held pluck shape
+    info: list[dict[str, Any]]
+
+
+def _forcing(cfg: SimConfig, modal: dict[str, Any], rate: float, n_samples: int) -> _Forcing:
+    """The excitation of ``cfg`` sampled at ``rate``; forces at mid-interval."""
+    t_mid = np.arange(n_samples) / rate + 0.5 * (1.0 / rate)
+    info: list[dict[str, Any]] = []
+    harmonic = [e for e in cfg.excitation if e.type == "harmonic"]
+    harmonic_ctrl = np.zeros((n_samples, len(harmonic)))
+    for col, exc in enumerate(harmonic):
+        phase = 2 * math.pi * exc.get("freq_hz") * (t_mid - exc.get("start_s"))
+        harmonic_ctrl[:, col] = exc.get("amplitude_n") * np.sin(phase) * _window(exc, t_mid)
+    ambient = [(k, e) for k, e in enumerate(cfg.excitation) if e.type == "ambient"]
+    accel = np.zeros(n_samples)
+    for k, exc in ambient:
+        accel += _ambient_signal(cfg, exc, rate, n_samples, k) * _window(exc, t_mid)
+    if ambient:
+        info.append({"type": "ambient", "base_accel_rms_m_s2": float(np.sqrt(np.mean(accel**2)))})
+    base_vector = _base_accel_vector(modal["model"]) if ambient else None
+    hold_until, hold_qpos = _pluck_hold(cfg, modal, rate, info)
+    return _Forcing(harmonic, harmonic_ctrl, accel, base_vector, _impulses(cfg, modal["mass"], rate, n_samples),
+                    hold_until, hold_qpos, info)
+
+
+def _impulses(cfg: SimConfig, mass: np.ndarray, rate: float, n_samples: int) -> dict[int, np.ndarray]:
+    """Instantaneous velocity jumps ``dq = M^-1 J^T I`` (linearised about q = 0), by sample."""
+    impulses: dict[int, np.ndarray] = {}
+    for exc in cfg.excitation:
+        if exc.type == "impulse":
+            sample = int(math.ceil(exc.get("start_s") * rate - 1e-9))
+            if sample < n_samples:
+                jump = np.linalg.solve(mass, _lever(cfg.beam, exc.get("height_mm"))) * exc.get("impulse_ns")
+                impulses[sample] = impulses.get(sample, 0) + jump
+    return impulses
+
+
+def _pluck_hold(cfg: SimConfig, modal: dict[str, Any], rate: float,
+                info: list[dict[str, Any]]) -> tuple[int, np.ndarray]:
+    """The pluck: the static shape under a point load, scaled to ``peak_mm`` at the given
+    height, held until the release; ``(last held sample or -1, joint angles)``."""
+    beam = cfg.beam
+    hold_until = -1
+    hold_qpos = np.zeros(beam.n_segments)
+    for exc in cfg.excitation:
+        if exc.type == "pluck":
+            lever = _lever(beam, exc.get("load_height_mm") or beam.length_mm)
+            shape = np.linalg.solve(modal["spring"] + modal["geometric"], lever)
+            node_x, _, _ = _node_displacements(beam, shape)
+            at = _point_x(beam, node_x, exc.get("height_mm") or cfg.sensor.height_mm)
+            hold_qpos = shape * (exc.get("peak_mm") * 1e-3 / at)
+            hold_until = int(math.ceil(exc.get("start_s") * rate - 1e-9))
+            info.append({"type": "pluck", "tip_static_mm": float(
+                _node_displacements(beam, hold_qpos)[0][-1] * 1e3),
+                "equivalent_load_n": float(exc.get("peak_mm") * 1e-3 / at)})
+    return hold_until, hold_qpos
+
+
+class _Progress:
+    """A tqdm bar over the samples, advanced every 1000 (no bar when not asked for)."""
+
+    def __init__(self, enabled: bool, n_samples: int, engine: str) -> None:
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+            self.bar = tqdm(total=n_samples - 1, unit="sample", desc=f"simulate ({engine})", mininterval=0.5,
+                            disable=n_samples < (2000 if engine == "mujoco" else 20000))
+        self.n_samples = n_samples
+
+    def step(self, i: int) -> None:
+        if self.bar is not None and i % 1000 == 0:
+            self.bar.update(min(1000, self.n_samples - 1 - self.bar.n))
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _integrate_modal(cfg: SimConfig, modal: dict[str, Any], zeta: np.ndarray, forcing: _Forcing,
+                     record_dt: float, n_samples: int, progress: _Progress) -> np.ndarray:
+    """The linearised model propagated exactly mode by mode; joint angles (samples, n)."""
+    omega, modes, mass = modal["omega"], modal["modes"], modal["mass"]
+    n = cfg.beam.n_segments
+    transition, zoh = _modal_step_matrices(omega, zeta, record_dt)
+    # Modal forcing phi_k^T f for every sample.
+    force = forcing.harmonic_ctrl @ np.array([modes.T @ _lever(cfg.beam, e.get("height_mm"))
+                                              for e in forcing.harmonic]).reshape(len(forcing.harmonic), n)
+    if forcing.base_vector is not None:
+        force += np.outer(forcing.accel, modes.T @ forcing.base_vector)
+    to_modal = modes.T @ mass  # eta = Phi^T M q (mass-normalised modes)
+    disp = to_modal @ forcing.hold_qpos
+    vel = np.zeros(n)
+    eta = np.zeros((n_samples, n))
+    t00, t01 = transition[:, 0, 0], transition[:, 0, 1]
+    t10, t11 = transition[:, 1, 0], transition[:, 1, 1]
+    b0, b1 = zoh[:, 0], zoh[:, 1]
+    for i in range(n_samples):
+        if i <= forcing.hold_until:
+            disp, vel = to_modal @ forcing.hold_qpos, np.zeros(n)
+        if i in forcing.impulses:
+            vel = vel + to_modal @ forcing.impulses[i]
+        eta[i] = disp
+        f_i = force[i]
+        disp, vel = t00 * disp + t01 * vel + b0 * f_i, t10 * disp + t11 * vel + b1 * f_i
+        progress.step(i)
+    return eta @ modes.T
+
+
+def _integrate_mujoco(cfg: SimConfig, modal: dict[str, Any], zeta: np.ndarray, forcing: _Forcing,
+                      n_samples: int, substeps: int, dt: float, exact: int,
+                      progress: _Progress) -> np.ndarray:
+    """The nonlinear MuJoCo chain, semi-implicit Euler, ``substeps`` steps of ``dt`` per
+    sample; joint angles (samples, n)."""
+    omega, modes, mass = modal["omega"], modal["modes"], modal["mass"]
+    n = cfg.beam.n_segments
+    exact = min(exact, n)
+    # Stiffness-proportional joint damping for the modes above `exact`; the
+    # tendons top the lowest modes up to their exact target.
+    beta = 2 * zeta[exact - 1] / omega[exact - 1] if exact < n else 0.0
+    from_joints = beta * np.einsum("ik,i,ik->k", modes, np.diag(modal["spring"]), modes)
+    values = 2 * zeta[:exact] * omega[:exact] - from_joints[:exact]
+    values = np.clip(values, 0.0, None)
+    coefs = (mass @ modes[:, :exact]).T
+    model = build_model(cfg, damping_coefs=coefs, damping_values=values,
+                        base_accel_coefs=forcing.base_vector,
+                        force_heights_mm=[e.get("height_mm") for e in forcing.harmonic],
+                        timestep_s=dt, integrator="Euler")
+    model.dof_damping[:] = beta * np.diag(modal["spring"])
+    data = mujoco.MjData(model)
+    ctrl = np.column_stack([forcing.harmonic_ctrl]
+                           + ([forcing.accel] if forcing.base_vector is not None else []))
+    data.qpos[:] = forcing.hold_qpos
+    qpos = np.zeros((n_samples, n))
+    for i in range(n_samples):
+        if i <= forcing.hold_until:
+            data.qpos[:] = forcing.hold_qpos
+            data.qvel[:] = 0.0
+        if i in forcing.impulses:
+            data.qvel[:] += forcing.impulses[i]
+        qpos[i] = data.qpos
+        if i == n_samples - 1:
+            break
+        if model.nu:
+            data.ctrl[:] = ctrl[i]
+        mujoco.mj_step(model, data, nstep=substeps)
+        progress.step(i)
+    return qpos
+
+
 def run_simulation(cfg: SimConfig | Mapping[str, Any] | None = None, *,
                    record_rate_hz: float | None = None, engine: str | None = None,
                    stability_margin: float | None = None, exact_damped_modes: int | None = None,
@@ -753,7 +913,6 @@ def run_simulation(cfg: SimConfig | Mapping[str, Any] | None = None, *,
     their mid-interval value in both engines.
     """
     cfg = _as_config(cfg)
-    beam = cfg.beam
     engine = engine or cfg.simulation.engine
     margin = stability_margin or cfg.simulation.stability_margin
     exact = exact_damped_modes or cfg.simulation.exact_damped_modes
@@ -761,127 +920,27 @@ def run_simulation(cfg: SimConfig | Mapping[str, Any] | None = None, *,
         raise ValueError(f"engine must be 'mujoco' or 'modal', got {engine!r}")
     rate = record_rate_hz or max(cfg.sensor.rate_hz, cfg.sensor.shape_rate_hz)
     modal = _dof_modal(cfg)
-    omega, modes, mass = modal["omega"], modal["modes"], modal["mass"]
-    n = beam.n_segments
-    zeta = np.array([cfg.damping.ratio(k) for k in range(n)])
+    omega = modal["omega"]
+    zeta = np.array([cfg.damping.ratio(k) for k in range(cfg.beam.n_segments)])
     record_dt = 1.0 / rate
     n_samples = int(round(cfg.duration_s * rate)) + 1
-    t = np.arange(n_samples) / rate
-    t_mid = t + 0.5 * record_dt
-    info: list[dict[str, Any]] = []
-
-    # Forcing: per-sample generalized-force amplitudes of each source.
-    harmonic = [e for e in cfg.excitation if e.type == "harmonic"]
-    harmonic_ctrl = np.zeros((n_samples, len(harmonic)))
-    for col, exc in enumerate(harmonic):
-        phase = 2 * math.pi * exc.get("freq_hz") * (t_mid - exc.get("start_s"))
-        harmonic_ctrl[:, col] = exc.get("amplitude_n") * np.sin(phase) * _window(exc, t_mid)
-    ambient = [(k, e) for k, e in enumerate(cfg.excitation) if e.type == "ambient"]
-    accel = np.zeros(n_samples)
-    for k, exc in ambient:
-        accel += _ambient_signal(cfg, exc, rate, n_samples, k) * _window(exc, t_mid)
-    if ambient:
-        info.append({"type": "ambient", "base_accel_rms_m_s2": float(np.sqrt(np.mean(accel**2)))})
-    base_vector = _base_accel_vector(modal["model"]) if ambient else None
-
-    # Impulses: instantaneous velocity jump dq = M^-1 J^T I (linearised about q = 0).
-    impulses: dict[int, np.ndarray] = {}
-    for exc in cfg.excitation:
-        if exc.type == "impulse":
-            sample = int(math.ceil(exc.get("start_s") * rate - 1e-9))
-            if sample < n_samples:
-                jump = np.linalg.solve(mass, _lever(beam, exc.get("height_mm"))) * exc.get("impulse_ns")
-                impulses[sample] = impulses.get(sample, 0) + jump
-
-    # Pluck: static shape under a point load, scaled to peak_mm at the given point.
-    hold_until = -1
-    hold_qpos = np.zeros(n)
-    for exc in cfg.excitation:
-        if exc.type == "pluck":
-            lever = _lever(beam, exc.get("load_height_mm") or beam.length_mm)
-            shape = np.linalg.solve(modal["spring"] + modal["geometric"], lever)
-            node_x, _, _ = _node_displacements(beam, shape)
-            at = _point_x(beam, node_x, exc.get("height_mm") or cfg.sensor.height_mm)
-            hold_qpos = shape * (exc.get("peak_mm") * 1e-3 / at)
-            hold_until = int(math.ceil(exc.get("start_s") * rate - 1e-9))
-            info.append({"type": "pluck", "tip_static_mm": float(
-                _node_displacements(beam, hold_qpos)[0][-1] * 1e3),
-                "equivalent_load_n": float(exc.get("peak_mm") * 1e-3 / at)})
-
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=n_samples - 1, unit="sample", desc=f"simulate ({engine})",
-                   mininterval=0.5, disable=n_samples < (2000 if engine == "mujoco" else 20000))
-    qpos = np.zeros((n_samples, n))
+    forcing = _forcing(cfg, modal, rate, n_samples)
+    bar = _Progress(progress, n_samples, engine)
     wall0 = time.perf_counter()
     if engine == "modal":
         substeps, dt = 1, record_dt
-        transition, zoh = _modal_step_matrices(omega, zeta, record_dt)
-        # Modal forcing phi_k^T f for every sample.
-        force = harmonic_ctrl @ np.array([modes.T @ _lever(beam, e.get("height_mm"))
-                                          for e in harmonic]).reshape(len(harmonic), n)
-        if ambient:
-            force += np.outer(accel, modes.T @ base_vector)
-        to_modal = modes.T @ mass  # eta = Phi^T M q (mass-normalised modes)
-        disp = to_modal @ hold_qpos
-        vel = np.zeros(n)
-        eta = np.zeros((n_samples, n))
-        t00, t01 = transition[:, 0, 0], transition[:, 0, 1]
-        t10, t11 = transition[:, 1, 0], transition[:, 1, 1]
-        b0, b1 = zoh[:, 0], zoh[:, 1]
-        for i in range(n_samples):
-            if i <= hold_until:
-                disp, vel = to_modal @ hold_qpos, np.zeros(n)
-            if i in impulses:
-                vel = vel + to_modal @ impulses[i]
-            eta[i] = disp
-            f_i = force[i]
-            disp, vel = t00 * disp + t01 * vel + b0 * f_i, t10 * disp + t11 * vel + b1 * f_i
-            if bar is not None and i % 1000 == 0:
-                bar.update(min(1000, n_samples - 1 - bar.n))
-        qpos = eta @ modes.T
+        qpos = _integrate_modal(cfg, modal, zeta, forcing, record_dt, n_samples, bar)
     else:
         substeps = max(1, math.ceil(record_dt * omega[-1] / (2.0 * margin)))
         dt = record_dt / substeps
-        exact = min(exact, n)
-        # Stiffness-proportional joint damping for the modes above `exact`; the
-        # tendons top the lowest modes up to their exact target.
-        beta = 2 * zeta[exact - 1] / omega[exact - 1] if exact < n else 0.0
-        from_joints = beta * np.einsum("ik,i,ik->k", modes, np.diag(modal["spring"]), modes)
-        values = 2 * zeta[:exact] * omega[:exact] - from_joints[:exact]
-        values = np.clip(values, 0.0, None)
-        coefs = (mass @ modes[:, :exact]).T
-        model = build_model(cfg, damping_coefs=coefs, damping_values=values,
-                            base_accel_coefs=base_vector,
-                            force_heights_mm=[e.get("height_mm") for e in harmonic],
-                            timestep_s=dt, integrator="Euler")
-        model.dof_damping[:] = beta * np.diag(modal["spring"])
-        data = mujoco.MjData(model)
-        ctrl = np.column_stack([harmonic_ctrl] + ([accel] if ambient else []))
-        data.qpos[:] = hold_qpos
-        for i in range(n_samples):
-            if i <= hold_until:
-                data.qpos[:] = hold_qpos
-                data.qvel[:] = 0.0
-            if i in impulses:
-                data.qvel[:] += impulses[i]
-            qpos[i] = data.qpos
-            if i == n_samples - 1:
-                break
-            if model.nu:
-                data.ctrl[:] = ctrl[i]
-            mujoco.mj_step(model, data, nstep=substeps)
-            if bar is not None and i % 1000 == 0:
-                bar.update(min(1000, n_samples - 1 - bar.n))
+        qpos = _integrate_mujoco(cfg, modal, zeta, forcing, n_samples, substeps, dt, exact, bar)
     wall = time.perf_counter() - wall0
-    if bar is not None:
-        bar.close()
+    bar.close()
     if not np.all(np.isfinite(qpos)):
         raise FloatingPointError("simulation diverged; lower simulation.stability_margin")
-    return SimResult(time_s=t, qpos=qpos, record_rate_hz=rate, timestep_s=dt, substeps=substeps,
-                     model_hz=(omega[:6] / (2 * math.pi)).tolist(), wall_s=wall,
-                     excitation_info=info, engine=engine)
+    return SimResult(time_s=np.arange(n_samples) / rate, qpos=qpos, record_rate_hz=rate, timestep_s=dt,
+                     substeps=substeps, model_hz=(omega[:6] / (2 * math.pi)).tolist(), wall_s=wall,
+                     excitation_info=forcing.info, engine=engine)
 
 
 def sensor_table(cfg: SimConfig, result: SimResult) -> tuple[list[str], np.ndarray]:
