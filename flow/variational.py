@@ -844,6 +844,45 @@ def _solve(
     return zeroed[0], zeroed[1]
 
 
+def _normalised_pair(reference: np.ndarray, current: np.ndarray,
+                     params: VariationalParams) -> tuple[np.ndarray, np.ndarray]:
+    """The two images as float32 on [0, 1] (uint8 / 255), brought to ``params.contrast_std``
+    by one gain for both and pre-smoothed by ``params.sigma``."""
+    scale_in = 1.0 / 255.0 if reference.dtype == np.uint8 else 1.0
+    im1 = reference.astype(np.float32) * np.float32(scale_in)
+    im2 = current.astype(np.float32) * np.float32(scale_in)
+    if params.contrast_std > 0:
+        # One gain for both frames: zeta, eps and kappa then mean the same on
+        # low-contrast footage as on well-lit texture.
+        spread = float(im1.std())
+        if spread > 1e-6:
+            gain = np.float32(params.contrast_std / spread)
+            offset = np.float32(im1.mean())
+            im1 = (im1 - offset) * gain
+            im2 = (im2 - offset) * gain
+    if params.sigma > 0:
+        im1 = cv2.GaussianBlur(im1, (0, 0), params.sigma)
+        im2 = cv2.GaussianBlur(im2, (0, 0), params.sigma)
+    return im1, im2
+
+
+def _smoothness_weight(image: np.ndarray, params: VariationalParams, scale: float, ws: Workspace) -> np.ndarray:
+    """The local smoothness weight ``alpha exp(-kappa |grad|)`` of one pyramid level (in the
+    workspace's ``alpha`` array), from the gradient of ``image`` blurred by ``edge_sigma``."""
+    h, w = image.shape
+    if params.edge_sigma > 0:
+        # Edges of objects survive this blur, fine texture does not.
+        edges = cv2.GaussianBlur(image, (0, 0), params.edge_sigma * scale)
+    else:
+        edges = image
+    alpha = ws.array("alpha", (h, w))
+    _gradient_magnitude(edges, alpha, ws.array("gy", (h, w)))
+    alpha *= np.float32(-params.kappa)
+    np.exp(alpha, out=alpha)
+    alpha *= np.float32(params.alpha)
+    return alpha
+
+
 def refine(
     reference: np.ndarray,
     current: np.ndarray,
@@ -881,21 +920,7 @@ def refine(
     if match_weight is not None:
         check_shape("match_weight", match_weight, reference.shape)
     ws = workspace if workspace is not None else Workspace()
-    scale_in = 1.0 / 255.0 if reference.dtype == np.uint8 else 1.0
-    im1 = reference.astype(np.float32) * np.float32(scale_in)
-    im2 = current.astype(np.float32) * np.float32(scale_in)
-    if params.contrast_std > 0:
-        # One gain for both frames: zeta, eps and kappa then mean the same on
-        # low-contrast footage as on well-lit texture.
-        spread = float(im1.std())
-        if spread > 1e-6:
-            gain = np.float32(params.contrast_std / spread)
-            offset = np.float32(im1.mean())
-            im1 = (im1 - offset) * gain
-            im2 = (im2 - offset) * gain
-    if params.sigma > 0:
-        im1 = cv2.GaussianBlur(im1, (0, 0), params.sigma)
-        im2 = cv2.GaussianBlur(im2, (0, 0), params.sigma)
+    im1, im2 = _normalised_pair(reference, current, params)
     height, width = im1.shape
     levels = _level_sizes(height, width, params.eta, params.min_size)
     use_matches = match_flow is not None and match_weight is not None and params.beta > 0
@@ -910,16 +935,7 @@ def refine(
         if flow_scale != (1.0, 1.0):
             flow = cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
         i1 = pyr1.level(h, w)
-        if params.edge_sigma > 0:
-            # Edges of objects survive this blur, fine texture does not.
-            edges = cv2.GaussianBlur(i1, (0, 0), params.edge_sigma * scale)
-        else:
-            edges = i1
-        alpha = ws.array("alpha", (h, w))
-        _gradient_magnitude(edges, alpha, ws.array("gy", (h, w)))
-        alpha *= np.float32(-params.kappa)
-        np.exp(alpha, out=alpha)
-        alpha *= np.float32(params.alpha)
+        alpha = _smoothness_weight(i1, params, scale, ws)
         if use_matches and scale <= params.match_max_scale:
             match = cv2.resize(matches, (w, h), interpolation=cv2.INTER_LINEAR)
             match_scale = (w / width, h / height)
