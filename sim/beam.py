@@ -42,6 +42,8 @@ import scipy.linalg
 import scipy.optimize
 import scipy.signal
 
+from sim.config import STAGE_SECTIONS
+
 GRAVITY_M_S2 = 9.81
 #: Euler-Bernoulli cantilever eigenvalues beta_n L (no tip mass).
 _BETA_L = (1.8751040687119611, 4.6940911329741745, 7.8547574382376126,
@@ -1003,8 +1005,7 @@ def simulate(config: SimConfig | Mapping[str, Any], out_dir: str | Path, *,
         _write_npz_deterministic(tmp, shape_arrays(cfg, result))
     wall = time.perf_counter() - wall0
 
-    sim_section = {k: raw[k] for k in ("seed", "duration_s", "beam", "damping", "excitation",
-                                       "sensor", "simulation") if k in raw} if raw is not None else None
+    sim_section = {k: raw[k] for k in STAGE_SECTIONS["sim"] if k in raw} if raw is not None else None
     sidecar = {
         "units": {"time_s": "s", "dx_mm": "mm (world +x, relative to the clamp)",
                   "x_mm": "mm", "z_def_mm": "mm", "z_mm": "mm", "theta_rad": "rad about +y"},

@@ -31,7 +31,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sim.scene import _build
+from sim.config import section_dataclass
 
 REMAP_BITS = 5  # cv2.INTER_BITS: remap's fixed-point sub-pixel resolution (1/32 px)
 
@@ -82,7 +82,7 @@ class CameraConfig:
 
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> CameraConfig:
-        cfg = _build(cls, dict(config.get("camera") or {}), "camera")
+        cfg = section_dataclass(cls, dict(config.get("camera") or {}), "camera")
         for key in ("width_px", "height_px", "fps", "distance_mm", "fx_px", "exposure_s",
                     "motion_blur_subframes", "full_well_e", "gamma", "ae_target",
                     "ae_time_constant_s", "ae_max_gain", "ae_metering_width_px", "supersample",

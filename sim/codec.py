@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.scene import _build
+from sim.config import section_dataclass
 
 
 @dataclass(frozen=True)
@@ -29,7 +29,7 @@ class CodecConfig:
 
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> CodecConfig:
-        cfg = _build(cls, dict(config.get("codec") or {}), "codec")
+        cfg = section_dataclass(cls, dict(config.get("codec") or {}), "codec")
         if cfg.name not in ("h264", "ffv1"):
             raise ValueError(f"codec.name must be 'h264' or 'ffv1', got {cfg.name!r}")
         if cfg.bits_per_pixel <= 0 or (cfg.bitrate_mbps is not None and cfg.bitrate_mbps <= 0):

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.scene import _build
+from sim.config import section_dataclass
 
 A4_MM = (210.0, 297.0)
 _AXES = {"+x": (0, 1.0), "-x": (0, -1.0), "+z": (1, 1.0), "-z": (1, -1.0)}
@@ -48,7 +48,7 @@ class OcclusionConfig:
 
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> OcclusionConfig:
-        cfg = _build(cls, dict(config.get("occlusion") or {}), "occlusion")
+        cfg = section_dataclass(cls, dict(config.get("occlusion") or {}), "occlusion")
         if cfg.direction not in _AXES:
             raise ValueError(f"occlusion.direction must be one of {', '.join(_AXES)}, "
                              f"got {cfg.direction!r}")

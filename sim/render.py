@@ -616,7 +616,7 @@ def render_calibration(config: dict[str, Any], out_dir: str | Path, *, n_images:
                        progress: bool = True) -> dict[str, Any]:
     """Checkerboard images through the same camera, lens and sensor as the video."""
     from refflow.io import atomic_path, config_hash, versions, write_json
-    from sim.scene import _material
+    from sim.scene import material
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     seed = _seed(config)
@@ -629,7 +629,7 @@ def render_calibration(config: dict[str, Any], out_dir: str | Path, *, n_images:
     bw, bh = (cols + 3) * square_mm, (rows + 3) * square_mm   # squares + white border
     corners = np.array([[-bw / 2, 0, -bh / 2], [bw / 2, 0, -bh / 2], [bw / 2, 0, bh / 2],
                         [-bw / 2, 0, bh / 2]])
-    board = scene.add(pyrender.Mesh([quad_primitive(corners, _material(tex, 0.9))]))
+    board = scene.add(pyrender.Mesh([quad_primitive(corners, material(tex, 0.9))]))
     fx, fy, cx, cy = cam.render_intrinsics(plan.render, 1)
     scene.add(pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=20.0, zfar=20000.0), pose=cam.pose())
     renderer = offscreen_renderer(plan.render.width, plan.render.height)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import functools
 import os
 import types
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +34,9 @@ if not hasattr(np, "infty"):
     np.infty = np.inf  # noqa: NPY201
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 import pyrender  # noqa: E402
+
+from sim.beam import BeamParams  # noqa: E402
+from sim.config import section_dataclass  # noqa: E402
 
 
 def _delete_own_egl_context(platform) -> None:
@@ -77,13 +80,18 @@ def release_renderer(renderer: pyrender.OffscreenRenderer) -> None:
     _spare_other_renderers(renderer).delete()
 
 
+# The scene's copies of the beam's geometry (scene name: beam section name).
+GEOMETRY = {"beam_length_mm": "length_mm", "beam_thickness_mm": "thickness_mm", "beam_width_mm": "width_mm"}
+
+
 @dataclass(frozen=True)
 class SceneConfig:
-    """``scene`` config section (lengths in mm)."""
+    """``scene`` config section (lengths in mm), with the beam's geometry from the ``beam``
+    section (:class:`sim.beam.BeamParams`, its one definition: not settable here)."""
 
-    beam_length_mm: float = 1000.0
-    beam_thickness_mm: float = 5.0
-    beam_width_mm: float = 100.0
+    beam_length_mm: float = BeamParams.length_mm
+    beam_thickness_mm: float = BeamParams.thickness_mm
+    beam_width_mm: float = BeamParams.width_mm
     measure_height_mm: float | None = None   # None: ``sensor.height_mm`` or 750
     texture_contrast: float = 0.03           # std of the paint's albedo / mean
     texture_feature_mm: float = 1.5          # size of the paint's blotches
@@ -116,7 +124,12 @@ class SceneConfig:
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> SceneConfig:
         section = dict(config.get("scene") or {})
-        out = _build(cls, section, "scene")
+        for key in GEOMETRY:
+            if key in section:
+                raise ValueError(f"scene.{key}: the beam's geometry is set once, as beam.{GEOMETRY[key]}")
+        out = section_dataclass(cls, section, "scene")
+        beam = BeamParams.from_dict(config.get("beam"))
+        out = _replace(out, **{key: getattr(beam, name) for key, name in GEOMETRY.items()})
         if out.measure_height_mm is None:
             height = (config.get("sensor") or {}).get("height_mm", 750.0)
             out = _replace(out, measure_height_mm=float(height))
@@ -143,35 +156,6 @@ def _replace(obj, **kw):
     return dataclasses.replace(obj, **kw)
 
 
-def _build(cls, section: dict[str, Any], name: str):
-    """Frozen dataclass from a config section; ValueError names unknown/bad keys."""
-    known = {f.name: f for f in fields(cls)}
-    unknown = sorted(set(section) - set(known))
-    if unknown:
-        raise ValueError(f"{name}: unknown key(s) {', '.join(unknown)}; known: {', '.join(known)}")
-    kwargs = {}
-    for key, value in section.items():
-        default = known[key].default
-        if value is None or isinstance(default, str) or isinstance(value, str) and default is None:
-            kwargs[key] = value
-            continue
-        try:
-            if isinstance(default, bool):
-                if not isinstance(value, bool):
-                    raise TypeError
-                kwargs[key] = value
-            elif isinstance(default, int) and not isinstance(default, bool):
-                if float(value) != int(value):
-                    raise TypeError
-                kwargs[key] = int(value)
-            elif isinstance(default, (tuple, list)):
-                kwargs[key] = tuple(float(v) for v in value)
-            else:
-                kwargs[key] = float(value)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name}.{key}: bad value {value!r} "
-                             f"(expected {type(default).__name__})") from None
-    return cls(**kwargs)
 
 
 # ----------------------------------------------------------------- shapes
@@ -438,7 +422,7 @@ def shading(cfg: SceneConfig, normals: np.ndarray) -> np.ndarray:
     return np.clip(lin, 0, 1) ** (1 / 2.2)
 
 
-def _material(texture: np.ndarray, roughness: float = 0.8,
+def material(texture: np.ndarray, roughness: float = 0.8,
               factor: float = 1.0) -> pyrender.MetallicRoughnessMaterial:
     tex = pyrender.Texture(source=texture, source_channels="RGB",
                            sampler=pyrender.Sampler(magFilter=9729, minFilter=9987))
@@ -592,10 +576,10 @@ def build_static_scene(cfg: SceneConfig, *, camera_y_mm: float, aim_z_mm: float,
                                 cfg.texture_contrast, cfg.background_contrast, seed)
     scene = pyrender.Scene(ambient_light=np.full(3, cfg.ambient), bg_color=np.zeros(4))
     facing = shading(cfg, np.array([0.0, -1.0, 0.0]))  # surfaces facing the camera
-    paint = _material(textures["paint"], roughness=0.7)  # shaded per vertex
-    logo = _material(textures["logo"], factor=facing)
-    wall = _material(textures["wall"], factor=facing)
-    paper = _material(textures["paper"], roughness=0.95, factor=facing)
+    paint = material(textures["paint"], roughness=0.7)  # shaded per vertex
+    logo = material(textures["logo"], factor=facing)
+    wall = material(textures["wall"], factor=facing)
+    paper = material(textures["paper"], roughness=0.95, factor=facing)
     # the wall: a quad facing the camera, wide enough to fill the field of view
     yb = cfg.background_distance_mm
     half_w, half_h = 0.75 * (yb - camera_y_mm), 0.45 * (yb - camera_y_mm)  # > the 4K field of view
@@ -609,7 +593,7 @@ def build_static_scene(cfg: SceneConfig, *, camera_y_mm: float, aim_z_mm: float,
                        (0.25, 0.25, 0.27)), name="clamp_right")
     scene.add(box_mesh((-200, -200, -120), (200, 200, -80), (0.3, 0.3, 0.3)), name="base")
     if distractors is not None and len(distractors[0]):
-        fixtures = _material(distractor_atlas(cfg.distractor_contrast), factor=facing)
+        fixtures = material(distractor_atlas(cfg.distractor_contrast), factor=facing)
         scene.add(distractor_mesh(cfg, *distractors, yb - 1.0, fixtures), name="distractors")
     return scene, {"paint": paint, "logo": logo, "paper": paper}
 

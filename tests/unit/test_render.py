@@ -22,11 +22,12 @@ from sim.camera import (
 from sim.occlusion import OcclusionConfig
 from sim.render import BeamRenderer, figure_frames, render_clip
 from sim.scene import (
+    GEOMETRY,
     BeamMesh,
     BeamShapes,
     SceneConfig,
-    _material,
     logo_texture,
+    material,
     offscreen_renderer,
     pyrender,
     quad_primitive,
@@ -73,7 +74,7 @@ def test_undistort_inverts_distort_exactly():
 def _render_quad(cam: CameraModel, corners: np.ndarray, texture: np.ndarray, window: Window):
     """Linear image (float64, H x W x 3) of one textured quad through the lens."""
     scene = pyrender.Scene(bg_color=np.zeros(4), ambient_light=np.ones(3))
-    scene.add(pyrender.Mesh([quad_primitive(corners, _material(texture))]))
+    scene.add(pyrender.Mesh([quad_primitive(corners, material(texture))]))
     plan = cam.remap_plan(window)
     fx, fy, cx, cy = cam.render_intrinsics(plan.render)
     scene.add(pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=20.0, zfar=5000.0), pose=cam.pose())
@@ -155,7 +156,7 @@ def test_textures_render_upright_on_quads_and_the_logo():
     assert _corner_colours(img) == {"tl": 0, "tr": 1, "bl": 2, "br": 3}
     # the logo plate, as the beam carries it
     sc = SceneConfig(measure_height_mm=750.0)
-    beam = BeamMesh(sc, None, _material(_quadrant_texture()), logo_height_mm=c[2])
+    beam = BeamMesh(sc, None, material(_quadrant_texture()), logo_height_mm=c[2])
     corners = beam.logo_primitive(None, 0.0).positions
     assert np.allclose(corners[0], (c[0] - 20, 50.5, c[2] - 20), atol=0.01)  # bottom-left first
     img = _render_quad(cam, corners, _quadrant_texture(), window)
@@ -168,7 +169,7 @@ def test_textures_render_upright_on_quads_and_the_logo():
 def test_numpy2_shim_lets_pyrender_compute_mesh_bounds():
     """pyrender 0.1.45's Mesh.bounds reads np.infty (gone in NumPy 2)."""
     corners = _square(np.zeros(3), 5.0)
-    mesh = pyrender.Mesh([quad_primitive(corners, _material(_disc_texture(8)))])
+    mesh = pyrender.Mesh([quad_primitive(corners, material(_disc_texture(8)))])
     assert np.allclose(mesh.bounds, [[-5, 0, -5], [5, 0, 5]])
     assert np.infty == np.inf  # noqa: NPY201 (the alias the shim restores)
 
@@ -777,6 +778,8 @@ def test_config_schema_documents_every_render_key_with_its_default():
                       "occlusion": OcclusionConfig}.items():
         props = sections[name]["properties"]
         fields = {f.name: f.default for f in dataclasses.fields(cls)}
+        if cls is SceneConfig:  # the beam's geometry is the beam section's, not settable here
+            fields = {k: v for k, v in fields.items() if k not in GEOMETRY}
         assert set(props) == set(fields), (name, set(props) ^ set(fields))
         for key, default in fields.items():
             value = list(default) if isinstance(default, tuple) else default
@@ -786,3 +789,14 @@ def test_config_schema_documents_every_render_key_with_its_default():
             jsonschema.validate(value, props[key])
         with pytest.raises(jsonschema.ValidationError):
             jsonschema.validate({"bogus_key": 1}, sections[name])
+
+
+def test_beam_geometry_is_read_from_the_beam_section_only() -> None:
+    """The beam's size is configured once (``beam``): the scene takes it from there, and the
+    scene's copies cannot be set (they once disagreed with the simulated beam's)."""
+    scene = SceneConfig.from_config({"beam": {"thickness_mm": 6.0, "width_mm": 80.0, "length_mm": 900.0},
+                                     "sensor": {"height_mm": 700.0}})
+    assert (scene.beam_thickness_mm, scene.beam_width_mm, scene.beam_length_mm) == (6.0, 80.0, 900.0)
+    assert SceneConfig.from_config({}).beam_thickness_mm == 5.0
+    with pytest.raises(ValueError, match="beam.thickness_mm"):
+        SceneConfig.from_config({"scene": {"beam_thickness_mm": 6.0}})

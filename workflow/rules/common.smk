@@ -6,6 +6,7 @@ from pathlib import Path
 
 from refflow.config import deep_merge
 from refflow.io import source_digest
+from sim.config import STAGE_SECTIONS
 
 RESULTS = config.get("results_dir", "results")
 
@@ -60,12 +61,6 @@ def scenario_config_json(wildcards):
     return json.dumps(scenario_config(wildcards.scenario), sort_keys=True)
 
 
-# The config sections each stage reads: a stage re-runs only when its own sections change
-# (a new tracking parameter does not re-render the video).
-STAGE_SECTIONS = {
-    "sim": ["seed", "duration_s", "beam", "damping", "excitation", "sensor", "simulation"],
-    "render": ["seed", "duration_s", "camera", "scene", "occlusion", "codec", "sensor"],
-}
 
 
 def stage_config_json(wildcards):
