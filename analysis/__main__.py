@@ -65,11 +65,20 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
 
 
 def cmd_summary(args: argparse.Namespace) -> None:
-    from .report import load_metrics, summary_markdown, write_summary_csv, write_text
+    from .report import (
+        load_metrics,
+        modal_markdown,
+        summary_markdown,
+        write_summary_csv,
+        write_text,
+    )
     rows = load_metrics(args.metrics)
     write_summary_csv(rows, args.out)
     if args.markdown:
-        write_text(args.markdown, summary_markdown(rows))
+        text = summary_markdown(rows)
+        if args.modal:
+            text = text.rstrip("\n") + "\n\n" + modal_markdown([read_json(p) for p in args.modal])
+        write_text(args.markdown, text)
     print(f"{len(rows)} rows -> {args.out}" + (f", {args.markdown}" if args.markdown else ""))
 
 
@@ -146,6 +155,41 @@ def cmd_modal(args: argparse.Namespace) -> None:
               f"zeta={out[f'mode{i}_damping_ratio']:.4g}, MAC={out[f'mode{i}_mac']:.4f}")
 
 
+def cmd_modal_video(args: argparse.Namespace) -> None:
+    import yaml
+
+    from .modal import compare_video_modes, model_damping, video_modes_by_height
+    start = time.perf_counter()
+    config_path = Path(args.config)
+    if not config_path.is_file():
+        raise ValueError(f"{config_path}: config file not found")
+    config = yaml.safe_load(config_path.read_text()) or {}
+    sensor_cfg = config.get("sensor") or {}
+    # region k of the run is the k-th sensor height, sorted (sim render regions)
+    heights = np.unique([float(sensor_cfg.get("height_mm", 750.0)),
+                         *[float(h) for h in sensor_cfg.get("extra_heights_mm") or []]])
+    length = float((config.get("beam") or {}).get("length_mm", 1000.0))
+    sim_json = read_json(args.sim_json)
+    model_hz = model_modes_hz(sim_json, str(args.sim_json))
+    modes = video_modes_by_height(read_json(args.video_modal), heights.size, str(args.video_modal))
+    sensor = read_json(args.sensor_modal) if args.sensor_modal else None
+    out = compare_video_modes(modes, heights, model_hz, beam_length_mm=length,
+                              model_zeta=model_damping(sim_json, len(model_hz)), sensor=sensor)
+    out.update({"scenario": args.scenario, "what": "modes identified by `refflow modal` from one `refflow "
+                "track` run of the sensor heights as regions, against the model (Euler-Bernoulli shapes "
+                "at the heights) and the modes identified from the simulated laser at the same heights",
+                "units": {"freq_hz": "Hz", "freq_error_pct": "% of the model's", "damping_ratio":
+                          "fraction of critical", "mac": "1", "heights_mm": "mm"},
+                "inputs": {"video_modal": args.video_modal, "sensor_modal": args.sensor_modal,
+                           "sim_json": args.sim_json, "config": args.config},
+                "versions": versions(), "wall_s": time.perf_counter() - start})
+    write_json(args.out, clean(out))
+    for i in range(1, out["n_modes"] + 1):
+        print(f"mode {i}: {out[f'mode{i}_freq_hz']:.4f} Hz (model {out[f'mode{i}_freq_model_hz']:.4f}, "
+              f"{out[f'mode{i}_freq_error_pct']:+.2f} %), zeta={out[f'mode{i}_damping_ratio']:.4g}, "
+              f"MAC={out[f'mode{i}_mac']:.4f}")
+
+
 def cmd_gates(args: argparse.Namespace) -> int:
     import yaml
 
@@ -183,6 +227,8 @@ def build_parser() -> argparse.ArgumentParser:
     su.add_argument("metrics", nargs="+")
     su.add_argument("--out", required=True)
     su.add_argument("--markdown")
+    su.add_argument("--modal", action="append", default=[],
+                    help="`analysis modal-video` JSON, repeatable: a table of the modes from the video")
     su.set_defaults(func=cmd_summary)
 
     t1 = sub.add_parser("table1", help="paper's Table 1 beside ours (simulated)")
@@ -215,6 +261,15 @@ def build_parser() -> argparse.ArgumentParser:
     mo.add_argument("--beam-length-mm", type=float)
     mo.add_argument("--n-modes", type=int, default=2)
     mo.set_defaults(func=cmd_modal)
+
+    mv = sub.add_parser("modal-video", help="modes identified from the video (refflow modal) vs the model")
+    mv.add_argument("--video-modal", required=True, help="`refflow modal` JSON of the run of the sensor heights")
+    mv.add_argument("--sensor-modal", help="`analysis modal` JSON: the modes of the simulated laser")
+    mv.add_argument("--sim-json", required=True)
+    mv.add_argument("--config", required=True, help="the scenario's config.yaml (sensor heights, beam length)")
+    mv.add_argument("--scenario", required=True)
+    mv.add_argument("--out", required=True)
+    mv.set_defaults(func=cmd_modal_video)
 
     ga = sub.add_parser("gates", help="check metrics against config/gates.yaml (exit 1 on a failed gate)")
     ga.add_argument("metrics", nargs="+", help="metrics JSON files from evaluate")

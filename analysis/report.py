@@ -153,6 +153,28 @@ def summary_markdown(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def modal_markdown(results: list[dict[str, Any]]) -> str:
+    """One table per scenario measured as regions: the modes `refflow modal` identified from
+    the video against the model and against the modes of the simulated laser at the same heights
+    (``analysis modal-video`` JSONs)."""
+    lines = []
+    for result in sorted(results, key=lambda r: str(r.get("scenario"))):
+        heights = ", ".join(_fmt(float(h), 4) for h in result.get("heights_mm", []))
+        lines += [f"## {result.get('scenario')}: modes from the video ({heights} mm as regions of one run)", "",
+                  "| Mode | Frequency (Hz) | Model (Hz) | Error (%) | Laser-identified (Hz) | Damping ratio "
+                  "| Model damping | MAC vs model | MAC vs laser-identified |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for i in range(1, int(result.get("n_modes") or 0) + 1):
+            mode = {key[len(f"mode{i}_"):]: value for key, value in result.items() if key.startswith(f"mode{i}_")}
+            get = mode.get
+            lines.append("| " + " | ".join([
+                f"{i} (model mode {get('model_index')})", _fmt(get("freq_hz"), 5), _fmt(get("freq_model_hz"), 5),
+                _fmt(get("freq_error_pct"), 3), _fmt(get("freq_sensor_hz"), 5), _fmt(get("damping_ratio"), 3),
+                _fmt(get("damping_model_ratio"), 3), _fmt(get("mac"), 4), _fmt(get("mac_vs_sensor"), 4)]) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
 def write_text(path: str | os.PathLike[str], text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)

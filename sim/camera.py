@@ -55,6 +55,7 @@ class CameraConfig:
     aim_z_mm: float = 500.0          # height of the optical axis (phone framing the beam)
     crop_width_px: int = 800
     crop_height_px: int = 400
+    crop_center_z_mm: float | None = None  # height the crop centres on; None: the measurement point
     exposure_s: float = 1 / 120
     motion_blur_subframes: int = 4
     rolling_shutter_s: float = 0.0   # full-sensor row read-out time; 0: global shutter

@@ -14,6 +14,7 @@ from typing import Any
 STAGE_SECTIONS: dict[str, list[str]] = {
     "sim": ["seed", "duration_s", "beam", "damping", "excitation", "sensor", "simulation"],
     "render": ["seed", "duration_s", "beam", "camera", "scene", "occlusion", "codec", "sensor"],
+    "regions": ["seed", "beam", "camera", "scene", "occlusion", "sensor", "regions"],
 }
 
 

@@ -94,11 +94,13 @@ class BeamRenderer:
         self.mm_per_px = self.camera.mm_per_px_at(self.face_y_mm)
         self.measure_point = np.array([0.0, self.face_y_mm, sc.measure_height_mm])
         self.measure_px = self.camera.project(self.measure_point)
+        # a crop holding several heights (camera.crop_center_z_mm) centres between them
+        crop_z = sc.measure_height_mm if cc.crop_center_z_mm is None else cc.crop_center_z_mm
+        self.crop_window = self.camera.crop_around(*self.camera.project(
+            np.array([0.0, self.face_y_mm, crop_z])))
         if window is None:
-            window = (self.camera.full_window() if full_frame
-                      else self.camera.crop_around(*self.measure_px))
+            window = self.camera.full_window() if full_frame else self.crop_window
         self.window = window
-        self.crop_window = self.camera.crop_around(*self.measure_px)
         t0 = time.perf_counter()
         self.plan = self.camera.remap_plan(window)
         self.timings = {"remap_plan_s": time.perf_counter() - t0}
@@ -112,23 +114,65 @@ class BeamRenderer:
     def _mask(self) -> np.ndarray:
         """POIs a user would paint: the beam's edge face, 3 px in from its
         edges, over the crop height around the measurement point minus 20 px."""
+        inside, _ = self._face_rows()
+        if not inside.any():
+            raise ValueError(f"the beam face is too narrow for a POI mask at {self.mm_per_px:.3f} "
+                             f"mm/px: raise camera.fx_px or lower camera.distance_mm")
+        return inside.astype(np.uint8) * 255
+
+    def _face_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """Window-sized ``(inside, z_mm)``: the pixels of the beam's edge face 3 px in from its
+        side edges, within the crop's rows minus 20 px, and the rest height each pixel sees."""
         w = self.window
         crop = self.crop_window
         # only the crop's rows can hold POIs: back-project just those pixels
         y0, y1 = max(w.y, crop.y + 20), min(w.y + w.height, crop.y + crop.height - 20)
         x0, x1 = max(w.x, crop.x), min(w.x + w.width, crop.x + crop.width)
-        mask = np.zeros((w.height, w.width), np.uint8)
+        inside = np.zeros((w.height, w.width), bool)
+        z_mm = np.full((w.height, w.width), np.nan)
         if y1 > y0 and x1 > x0:
             vv, uu = np.mgrid[y0:y1, x0:x1].astype(np.float64)
             pts = self.camera.backproject_to_plane_y(uu, vv, self.face_y_mm)
-            # 3 px in from the edges (1.07 mm at 4K), at most a quarter of the thickness
-            inset_mm = min(3 * self.mm_per_px, 0.25 * self.scene_cfg.beam_thickness_mm)
-            inside = np.abs(pts[..., 0]) <= self.scene_cfg.beam_thickness_mm / 2 - inset_mm
-            mask[y0 - w.y:y1 - w.y, x0 - w.x:x1 - w.x] = inside.astype(np.uint8) * 255
-        if not mask.any():
-            raise ValueError(f"the beam face is too narrow for a POI mask at {self.mm_per_px:.3f} "
-                             f"mm/px: raise camera.fx_px or lower camera.distance_mm")
-        return mask
+            inside[y0 - w.y:y1 - w.y, x0 - w.x:x1 - w.x] = (
+                np.abs(pts[..., 0]) <= self.scene_cfg.beam_thickness_mm / 2 - self._inset_mm())
+            z_mm[y0 - w.y:y1 - w.y, x0 - w.x:x1 - w.x] = pts[..., 2]
+        return inside, z_mm
+
+    def _inset_mm(self) -> float:
+        # 3 px in from the edges (1.07 mm at 4K), at most a quarter of the thickness
+        return min(3 * self.mm_per_px, 0.25 * self.scene_cfg.beam_thickness_mm)
+
+    def regions_mask(self, heights_mm, half_height_mm: float) -> np.ndarray:
+        """Labelled mask of several measurement points, as a user paints them for
+        ``refflow track --mask``: region ``k`` (1-based, heights sorted) is the POI mask's face
+        within ``half_height_mm`` of the ``k``-th height, moved down to stay on the beam (the
+        tip's region is the top ``2 * half_height_mm`` below a 3 px inset from the free end)."""
+        heights = np.sort(np.asarray(heights_mm, float))
+        if heights.size == 0 or not half_height_mm > 0:
+            raise ValueError(f"regions need heights and half_height_mm > 0, got {heights.tolist()} "
+                             f"and {half_height_mm!r}")
+        if heights.size > 255:
+            raise ValueError(f"{heights.size} regions do not fit an 8-bit labelled PNG (at most 255)")
+        inside, z_mm = self._face_rows()
+        top = self.scene_cfg.beam_length_mm - self._inset_mm()
+        labels = np.zeros(inside.shape, np.uint8)
+        for k, height in enumerate(heights, start=1):
+            z1 = min(height + half_height_mm, top)
+            z0 = z1 - 2 * half_height_mm
+            if z0 <= 0:
+                raise ValueError(f"region {k} at {height:g} mm reaches below the clamp: lower "
+                                 f"regions.half_height_mm ({half_height_mm:g})")
+            rows = np.flatnonzero(np.any(inside & (z_mm >= z0) & (z_mm <= z1), axis=1))
+            expected = (z1 - z0) / self.mm_per_px
+            if rows.size < 0.9 * expected:
+                raise ValueError(f"region {k} ({z0:g}-{z1:g} mm) shows on {rows.size} of its ~{expected:.0f} "
+                                 f"rows in the {self.window.width}x{self.window.height} window: raise "
+                                 "camera.crop_height_px or set camera.crop_center_z_mm between the heights")
+            if (labels[inside & (z_mm >= z0) & (z_mm <= z1)] != 0).any():
+                raise ValueError(f"region {k} at {height:g} mm overlaps region {k - 1}: lower "
+                                 f"regions.half_height_mm ({half_height_mm:g})")
+            labels[inside & (z_mm >= z0) & (z_mm <= z1)] = k
+        return labels
 
     def _setup_pois(self) -> None:
         """The POIs' global pixels, rays, material points and rest projections."""
@@ -520,6 +564,42 @@ class BeamRenderer:
             "config": {"camera": asdict(cc), "scene": asdict(self.scene_cfg),
                        "occlusion": asdict(self.occ_cfg)},
         }
+
+
+def region_heights(config: dict[str, Any]) -> tuple[np.ndarray, float]:
+    """The sensor's heights (``sensor.height_mm`` and ``extra_heights_mm``, sorted: region
+    ``k`` is the ``k``-th) and ``regions.half_height_mm`` of a config with a ``regions`` section."""
+    from sim.beam import SensorParams
+
+    sensor = SensorParams.from_dict(config.get("sensor"))
+    section = config.get("regions")
+    if not isinstance(section, dict):
+        raise ValueError("the config has no `regions` section: add regions: {half_height_mm: 25}")
+    # the other keys say how the tool measures and identifies the regions (the workflow's)
+    unknown = sorted(set(section) - {"half_height_mm", "method", "modes", "band_hz"})
+    if unknown:
+        raise ValueError(f"regions: unknown key(s) {', '.join(unknown)}; known: half_height_mm, "
+                         "method, modes, band_hz")
+    heights = np.unique([sensor.height_mm, *sensor.extra_heights_mm])
+    return heights, float(section.get("half_height_mm", 25.0))
+
+
+def write_regions(config: dict[str, Any], out: str | Path) -> dict[str, Any]:
+    """The labelled mask of the sensor's heights (grey value k = region k, 0 elsewhere) on the
+    video's window, a PNG for ``refflow track --mask``; returns the heights and row spans."""
+    from refflow.io import atomic_path
+    heights, half = region_heights(config)
+    r = BeamRenderer(config, None)
+    try:
+        labels = r.regions_mask(heights, half)
+    finally:
+        r.close()
+    with atomic_path(out) as tmp:
+        if not cv2.imwrite(str(tmp), labels):
+            raise ValueError(f"could not write {out}: give it a .png name in a writable folder")
+    rows = [np.flatnonzero((labels == k).any(axis=1)) for k in range(1, heights.size + 1)]
+    return {"heights_mm": heights.tolist(), "half_height_mm": half,
+            "rows": [[int(r_[0]), int(r_[-1])] for r_ in rows], "window": r.window.as_dict()}
 
 
 # ----------------------------------------------------------------- clips

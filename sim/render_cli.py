@@ -7,6 +7,7 @@ Usage::
     python -m sim.render_cli calibration --config CONFIG --out-dir DIR [--n-images 15] [--board 9x6] [--square-mm 40]
     python -m sim.render_cli figures --config CONFIG [--shapes SHAPES.npz] [--out-dir results/figures]
     python -m sim.render_cli synthetic-shapes --out SHAPES.npz [--duration-s 2]
+    python -m sim.render_cli regions --config CONFIG --out REGIONS.png
 
 Exit codes: 0 success, 2 bad input (message on stderr).
 """
@@ -54,6 +55,10 @@ def _parser() -> argparse.ArgumentParser:
     fig.add_argument("--config")
     fig.add_argument("--shapes", help="default: the analytic 4 Hz first mode")
     fig.add_argument("--out-dir", default="results/figures")
+    reg = sub.add_parser("regions", help="labelled mask of the sensor's heights on the video's window "
+                         "(grey value k = the k-th height, sorted; config section `regions`)")
+    reg.add_argument("--config", required=True)
+    reg.add_argument("--out", required=True, help="PNG to write")
     syn = sub.add_parser("synthetic-shapes", help="analytic first-mode shapes.npz for development")
     syn.add_argument("--out", required=True)
     syn.add_argument("--duration-s", type=float, default=2.0)
@@ -72,6 +77,12 @@ def main(argv: list[str] | None = None) -> int:
             print(args.out)
             return 0
         config = _load_config(args.config)
+        if args.command == "regions":
+            from sim.render import write_regions
+            info = write_regions(config, args.out)
+            spans = ", ".join(f"{h:g} mm: rows {a}-{b}" for h, (a, b) in zip(info["heights_mm"], info["rows"], strict=True))
+            print(f"{args.out}: {len(info['heights_mm'])} regions ({spans})")
+            return 0
         if args.command == "calibration":
             from sim.render import render_calibration
             try:

@@ -150,3 +150,54 @@ from hypothesis import strategies as st  # noqa: E402
 def test_rmse_of_constant_offset_property(offset, n):
     x = np.linspace(-1, 1, n)
     assert rmse(x + offset, x) == pytest.approx(abs(offset), abs=1e-9)
+
+
+def _video_modal(heights, modes, region_order):
+    """A `refflow modal` JSON of one run of len(heights) regions, its points listed in ``region_order``."""
+    idx = [k - 1 for k in region_order]
+    return {"points": [{"name": f"regions region {k}", "region": k} for k in region_order],
+            "modes": [{"mode": i, "freq_hz": f, "damping_ratio": z, "shape": list(np.asarray(s)[idx]),
+                       "fdd_shape": list(np.asarray(s)[idx])} for i, (f, z, s) in enumerate(modes, start=1)]}
+
+
+def test_video_modes_against_model_and_laser_on_planted_numbers():
+    from analysis.modal import compare_video_modes, video_modes_by_height
+    from analysis.report import modal_markdown
+
+    heights = np.array([250.0, 500.0, 750.0, 1000.0])
+    model_hz = np.array([4.1, 25.7, 72.0])
+    s1, s2 = (cantilever_shape(heights / 1000, m) for m in (1, 2))
+    sensor = {"heights_mm": heights.tolist(), "mode1_freq_hz": 4.1, "mode1_shape": s1.tolist(),
+              "mode1_damping_ratio": 0.005, "mode2_freq_hz": 25.7, "mode2_shape": s2.tolist(),
+              "mode2_damping_ratio": 0.005}
+
+    def compare(modes):
+        # regions listed out of order: the shapes must be put back in height order
+        video = _video_modal(heights, modes, [3, 1, 4, 2])
+        return compare_video_modes(video_modes_by_height(video, 4), heights, model_hz, beam_length_mm=1000.0,
+                                   model_zeta=[0.005] * 3, sensor=sensor)
+
+    good = compare([(4.1 * 1.002, 0.006, -2 * s1), (25.7, 0.005, 0.5 * s2)])
+    assert good["n_modes"] == 2
+    assert good["mode1_freq_error_pct"] == pytest.approx(0.2, abs=1e-9)
+    assert good["mode1_damping_error_pct"] == pytest.approx(20.0)
+    for i in (1, 2):
+        assert good[f"mode{i}_model_index"] == i and good[f"mode{i}_sensor_index"] == i
+        assert good[f"mode{i}_mac"] > 0.999 and good[f"mode{i}_mac_vs_sensor"] > 0.999
+    # the wrong answers: a frequency 5 % low, the two shapes swapped
+    bad = compare([(4.1 * 0.95, 0.005, s2), (25.7, 0.005, s1)])
+    assert bad["mode1_freq_error_pct"] == pytest.approx(-5.0)
+    assert bad["mode1_freq_vs_sensor_pct"] == pytest.approx(-5.0)
+    for i in (1, 2):
+        assert bad[f"mode{i}_mac"] < 0.9 and bad[f"mode{i}_mac_vs_sensor"] < 0.9
+    text = modal_markdown([{**good, "scenario": "modal"}])
+    assert "## modal: modes from the video (250, 500, 750, 1000 mm" in text
+    assert "| 1 (model mode 1) | 4.1082 | 4.1 | 0.2 |" in text
+
+
+def test_video_modes_need_one_region_per_height():
+    from analysis.modal import video_modes_by_height
+
+    video = _video_modal(np.arange(3), [(4.0, 0.01, [0.1, 0.5, 1.0])], [1, 2, 3])
+    with pytest.raises(ValueError, match="3 points, expected one region per sensor height \\(4\\)"):
+        video_modes_by_height(video, 4)

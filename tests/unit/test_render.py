@@ -800,3 +800,60 @@ def test_beam_geometry_is_read_from_the_beam_section_only() -> None:
     assert SceneConfig.from_config({}).beam_thickness_mm == 5.0
     with pytest.raises(ValueError, match="beam.thickness_mm"):
         SceneConfig.from_config({"scene": {"beam_thickness_mm": 6.0}})
+
+
+# ----------------------------------------------------------------- regions
+def _modal_scenario_config():
+    """The `modal` scenario of config/config.yaml, merged onto the defaults as the workflow does."""
+    from pathlib import Path
+
+    import yaml
+
+    from refflow.config import deep_merge
+    config = yaml.safe_load((Path(__file__).parents[2] / "config" / "config.yaml").read_text())
+    return deep_merge(config["defaults"], config["scenarios"]["modal"])
+
+
+def test_regions_mask_labels_each_sensor_height_on_the_beam_face():
+    from sim.render import region_heights
+
+    cfg = _modal_scenario_config()
+    heights, half = region_heights(cfg)
+    assert heights.tolist() == [250.0, 500.0, 750.0, 1000.0]
+    r = BeamRenderer(cfg, None)
+    try:
+        labels = r.regions_mask(heights, half)
+        face_rows, _ = r._face_rows()
+        project_row = lambda z: float(r.camera.project(np.array([0.0, r.face_y_mm, z]))[1]) - r.window.y  # noqa: E731
+        length = r.scene_cfg.beam_length_mm
+    finally:
+        r.close()
+    assert labels.dtype == np.uint8 and labels.shape == (r.window.height, r.window.width)
+    assert set(np.unique(labels).tolist()) == {0, 1, 2, 3, 4}
+    # every labelled pixel is a POI of the binary mask (the beam's face, 3 px in)
+    assert np.all(face_rows[labels > 0])
+    for k, height in enumerate(heights, start=1):
+        rows = np.flatnonzero((labels == k).any(axis=1))
+        assert np.all(np.diff(rows) == 1), f"region {k} is not one band of rows"
+        # 2 x half_height_mm tall at 0.357 mm/px, give or take the lens's distortion
+        assert abs(rows.size - 2 * half / r.mm_per_px) < 6, (k, rows.size)
+        if height + half <= length:
+            centre = project_row(height)
+            assert rows[0] < centre < rows[-1], (k, centre, rows[[0, -1]])
+        else:  # the tip's region: the top 2 x half_height_mm, just below the free end
+            assert rows[0] - project_row(length) == pytest.approx(3, abs=1.5)
+            assert rows[0] < project_row(length - half) < rows[-1]
+    # region k is the k-th height from the clamp up: image rows go the other way
+    tops = [np.flatnonzero((labels == k).any(axis=1))[0] for k in range(1, 5)]
+    assert tops == sorted(tops, reverse=True)
+
+
+def test_regions_mask_names_the_crop_when_a_height_is_outside_the_window():
+    cfg = _modal_scenario_config()
+    cfg["camera"] = {**cfg["camera"], "crop_height_px": 1200}
+    r = BeamRenderer(cfg, None)
+    try:
+        with pytest.raises(ValueError, match="crop_height_px"):
+            r.regions_mask([250.0, 500.0, 750.0, 1000.0], 25.0)
+    finally:
+        r.close()

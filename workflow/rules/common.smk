@@ -122,13 +122,53 @@ def track_inputs(wildcards):
 def setup_args(wildcards, input):
     """--calibration and --background-mask, as the scenario asks (the paper's KLT baseline
     has no camera-motion compensation: only reference-frame methods get the background)."""
+    return _setup_args(wildcards.scenario, wildcards.method, input)
+
+
+def _setup_args(scenario, method, input):
     args = []
     if "calibration" in input.keys():
         args.append(f"--calibration {input.calibration} --video-origin {input.recording}")
-    if (track_config(wildcards.scenario).get("background_compensation", False)
-            and method_kind(wildcards.method) == "dense"):
+    if track_config(scenario).get("background_compensation", False) and method_kind(method) == "dense":
         args.append(f"--background-mask {input.background}")
     return " ".join(args)
+
+
+def regions_config(scenario):
+    return scenario_config(scenario).get("regions")
+
+
+def has_regions(scenario):
+    """The scenario measures its sensor heights as regions of one run (a `regions` section)."""
+    return regions_config(scenario) is not None
+
+
+def regions_method(wildcards):
+    return regions_config(wildcards.scenario).get("method", "deepflow")
+
+
+def regions_track_args(wildcards, input):
+    """`refflow track` options of the regions run: the scenario's reference and filtering
+    options (no per-method --param: the tool's defaults) and its calibration."""
+    cfg = track_config(wildcards.scenario)
+    options = _options(cfg, ("grid_step", "reference_frame", "reference_average", "filter",
+                             "threshold_ratio", "mcr_threshold"))
+    return " ".join(options + [_setup_args(wildcards.scenario, regions_method(wildcards), input)])
+
+
+def modal_args(wildcards):
+    """`refflow modal` options of the regions run: --modes and --band."""
+    cfg = regions_config(wildcards.scenario)
+    args = [f"--modes {int(cfg.get('modes', 2))}"]
+    if "band_hz" in cfg:
+        low, high = cfg["band_hz"]
+        args.append(f"--band {low},{high}")
+    return " ".join(args)
+
+
+def modal_video_files():
+    return [f"{RESULTS}/{scenario}/metrics/modal_video_vs_model.json"
+            for scenario in SCENARIOS if has_regions(scenario)]
 
 
 def method_kind(method):
@@ -188,11 +228,13 @@ def all_outputs():
     outputs += key_figure_paths() + render_figure_paths()
     for scenario in SCENARIOS:
         outputs += [
-            f"{RESULTS}/{scenario}/figures",
             f"{RESULTS}/{scenario}/sim/modes.json",
             f"{RESULTS}/{scenario}/metrics/modal.json",
         ]
-    return outputs
+        # a scenario run only as regions (no methods) has no per-method figures
+        if scenario_methods(scenario):
+            outputs.append(f"{RESULTS}/{scenario}/figures")
+    return outputs + modal_video_files()
 
 
 KEY_SCENARIO = config.get("key_figures", {}).get("scenario", SCENARIOS[0])

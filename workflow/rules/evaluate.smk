@@ -31,7 +31,8 @@ rule evaluate:
 
 rule summary:
     input:
-        metrics_files(),
+        metrics=metrics_files(),
+        modal=modal_video_files(),
     output:
         csv=report(
             f"{RESULTS}/summary.csv",
@@ -41,6 +42,7 @@ rule summary:
         md=f"{RESULTS}/summary.md",
     params:
         code=CODE["analysis"],
+        modal=lambda wildcards, input: " ".join(f"--modal {path}" for path in input.modal),
     conda:
         "../envs/refflow.yaml"
     benchmark:
@@ -48,8 +50,8 @@ rule summary:
     log:
         f"{RESULTS}/logs/summary.log",
     shell:
-        "python -m analysis summary {input} --out {output.csv} --markdown {output.md}"
-        " > {log} 2>&1"
+        "python -m analysis summary {input.metrics} {params.modal} --out {output.csv}"
+        " --markdown {output.md} > {log} 2>&1"
 
 
 rule table1:
@@ -87,4 +89,62 @@ rule modal:
         f"{RESULTS}/{{scenario}}/logs/modal.log",
     shell:
         "python -m analysis modal --sensor {input.sensor} --sim-json {input.sim}"
+        " --out {output} > {log} 2>&1"
+
+
+# Modes identified from the video, by the tool itself, from the one run of several regions.
+rule modal_video:
+    input:
+        f"{RESULTS}/{{scenario}}/track/regions.csv",
+    output:
+        json=f"{RESULTS}/{{scenario}}/metrics/modal_video.json",
+        stabilisation=report(
+            f"{RESULTS}/{{scenario}}/metrics/modal_video_stabilisation.png",
+            caption="../report/modal_video.rst",
+            category="Modal",
+            subcategory="{scenario}",
+        ),
+        shapes=report(
+            f"{RESULTS}/{{scenario}}/metrics/modal_video_shapes.png",
+            caption="../report/modal_video.rst",
+            category="Modal",
+            subcategory="{scenario}",
+        ),
+    params:
+        code=CODE["flow"],
+        options=modal_args,
+    conda:
+        "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/modal_video.tsv"
+    log:
+        f"{RESULTS}/{{scenario}}/logs/modal_video.log",
+    shell:
+        "refflow modal {input} {params.options} --out {output.json} > {log} 2>&1"
+
+
+rule modal_video_vs_model:
+    input:
+        video=f"{RESULTS}/{{scenario}}/metrics/modal_video.json",
+        sensor=f"{RESULTS}/{{scenario}}/metrics/modal.json",
+        sim=f"{RESULTS}/{{scenario}}/sim/sim.json",
+        config=f"{RESULTS}/{{scenario}}/config.yaml",
+    output:
+        report(
+            f"{RESULTS}/{{scenario}}/metrics/modal_video_vs_model.json",
+            caption="../report/modal_video_vs_model.rst",
+            category="Modal",
+            subcategory="{scenario}",
+        ),
+    params:
+        code=CODE["analysis"],
+    conda:
+        "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/modal_video_vs_model.tsv"
+    log:
+        f"{RESULTS}/{{scenario}}/logs/modal_video_vs_model.log",
+    shell:
+        "python -m analysis modal-video --video-modal {input.video} --sensor-modal {input.sensor}"
+        " --sim-json {input.sim} --config {input.config} --scenario {wildcards.scenario}"
         " --out {output} > {log} 2>&1"

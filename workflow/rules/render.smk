@@ -66,3 +66,20 @@ rule calibrate:
     shell:
         "refflow calibrate {input.images} --board {params.board}"
         " --square-mm {params.square_mm} --out {output} > {log} 2>&1"
+
+
+rule regions_mask:
+    input:
+        stage_config("regions"),
+    output:
+        f"{RESULTS}/{{scenario}}/render/regions.png",
+    params:
+        code=CODE["sim"],
+    conda:
+        "../envs/refflow.yaml"
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/regions_mask.tsv"
+    log:
+        f"{RESULTS}/{{scenario}}/logs/regions_mask.log",
+    shell:
+        "python -m sim render regions --config {input} --out {output} > {log} 2>&1"

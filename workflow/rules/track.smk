@@ -79,3 +79,28 @@ rule track:
         "refflow track {input.video} --mask {input.mask} --method {wildcards.method}"
         " {params.measure} {params.setup} --scale-file {input.scale} {params.filters}"
         " --out {output.csv} --raw-tracks {output.raw} --no-progress > {log} 2>&1"
+
+
+# The sensor's heights as the regions of one run (a scenario with a `regions` section): one
+# flow per frame, each region filtered and averaged on its own, one CSV with a region column.
+rule track_regions:
+    input:
+        unpack(track_inputs),
+        regions=f"{RESULTS}/{{scenario}}/render/regions.png",
+    output:
+        csv=f"{RESULTS}/{{scenario}}/track/regions.csv",
+        sidecar=f"{RESULTS}/{{scenario}}/track/regions.json",
+    params:
+        code=CODE["flow"],
+        method=regions_method,
+        options=regions_track_args,
+    conda:
+        "../envs/refflow.yaml"
+    log:
+        f"{RESULTS}/{{scenario}}/logs/track_regions.log",
+    benchmark:
+        f"{RESULTS}/{{scenario}}/benchmarks/track_regions.tsv"
+    shell:
+        "refflow track {input.video} --mask {input.regions} --method {params.method}"
+        " {params.options} --scale-file {input.scale} --jobs {threads}"
+        " --out {output.csv} --no-progress > {log} 2>&1"
