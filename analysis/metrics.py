@@ -19,9 +19,11 @@ from typing import Any
 
 import numpy as np
 
+from refflow.spectra import pick_peaks
+
 from .modal import identify
 from .readers import Sensor, model_modes_hz, release_time_s, track_mm
-from .spectra import alias_frequency, band_power, nearest_peak, pick_peaks, welch_psd
+from .spectra import alias_frequency, band_power, nearest_peak, welch_psd
 from .sync import align, datum_offset, estimate_offset, lowpass
 
 DEFAULTS: dict[str, Any] = {

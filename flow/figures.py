@@ -18,6 +18,7 @@ import numpy as np
 from flow.io import InputError, as_uint8
 from refflow import trackcsv
 from refflow.io import atomic_path
+from refflow.spectra import pick_peaks
 
 # BGR colours of regions 1, 2, ... (a colour-blind-safe palette, Okabe-Ito), repeated beyond 8.
 REGION_COLOURS = ((0, 220, 0), (0, 159, 230), (233, 180, 86), (0, 94, 213), (66, 228, 240),
@@ -143,16 +144,8 @@ def dominant_frequency(time_s: np.ndarray, values: np.ndarray, *,
     amplitude = np.abs(np.fft.rfft(samples * window, n_fft)) * 2 / window.sum()
     freqs = np.fft.rfftfreq(n_fft, dt)
     floor = min_hz if min_hz is not None else 1.0 / (samples.size * dt)
-    search = np.flatnonzero(freqs >= floor)
-    if search.size < 3:
-        return None, freqs, amplitude
-    k = int(search[np.argmax(amplitude[search])])
-    if 0 < k < len(amplitude) - 1:
-        a, b, c = np.log(amplitude[k - 1:k + 2] + 1e-300)
-        shift = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else 0.0
-    else:
-        shift = 0.0
-    return float(freqs[k] + shift * (freqs[1] - freqs[0])), freqs, amplitude
+    peaks = pick_peaks(freqs, amplitude, count=1, min_hz=floor, rel_prominence=0.0)
+    return (peaks[0]["freq_hz"] if peaks else None), freqs, amplitude
 
 
 def spectrum_figure(series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], path: str | Path, *,
