@@ -279,3 +279,19 @@ def test_source_digest_moves_with_the_code_it_names_only(tmp_path):
     (tmp_path / "flow" / "gui").mkdir()  # the browser page: no workflow stage runs it
     (tmp_path / "flow" / "gui" / "server.py").write_text("z = 5\n")
     assert source_digest(tmp_path, "flow") == moved
+
+
+# Packages held to issue 15's "no function over 100 lines" (flow joins when its split lands).
+SHORT_FUNCTION_PACKAGES = ("analysis", "refflow")
+
+
+@pytest.mark.parametrize("package", SHORT_FUNCTION_PACKAGES)
+def test_no_function_over_100_lines(package):
+    long = {}
+    for path in sorted((ROOT / package).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > 100:
+                    long[f"{path.relative_to(ROOT)}:{node.name}"] = lines
+    assert not long, f"functions over 100 lines: {long}"
