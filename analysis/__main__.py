@@ -198,7 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
     fi.add_argument("--render-json")
     fi.add_argument("--video", help="video for Fig. 6/7 (first frame)")
     fi.add_argument("--mask", help="mask.png for Fig. 6")
-    fi.add_argument("--klt-raw", help="--raw-tracks file of a KLT run: Fig. 11 (what each feature reads)")
+    fi.add_argument("--klt-raw", help="--raw-tracks file of a KLT run: the corners it tracked (Fig. 6) "
+                    "and what each one reads (Fig. 11)")
     fi.add_argument("--config")
     fi.add_argument("--out-dir", required=True)
     fi.set_defaults(func=cmd_figures)
