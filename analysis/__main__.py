@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from refflow.config import load_config
 from refflow.io import versions, write_json
 
 from .metrics import DEFAULTS, clean, evaluate
@@ -23,11 +24,8 @@ from .readers import model_modes_hz, read_json, read_sensor, read_track, read_tr
 def _analysis_params(config: str | None) -> dict[str, Any]:
     if not config:
         return {}
-    import yaml
     path = Path(config)
-    if not path.is_file():
-        raise ValueError(f"{path}: config file not found")
-    data = yaml.safe_load(path.read_text()) or {}
+    data = load_config(path)
     section = data.get("analysis") or {}
     unknown = sorted(set(section) - set(DEFAULTS) - {"methods", "figures"})
     if unknown:
@@ -191,11 +189,9 @@ def cmd_modal_video(args: argparse.Namespace) -> None:
 
 
 def cmd_gates(args: argparse.Namespace) -> int:
-    import yaml
-
     from .gates import check, format_table, load_metrics
 
-    spec = yaml.safe_load(Path(args.gates).read_text()) or {}
+    spec = load_config(args.gates)
     if not isinstance(spec.get("gates"), list) or not spec["gates"]:
         raise ValueError(f"{args.gates}: needs a non-empty list under 'gates'")
     rows = check(spec["gates"], load_metrics(args.metrics))
@@ -248,7 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
     fi.add_argument("--render-json")
     fi.add_argument("--video", help="video for Fig. 6/7 (first frame)")
     fi.add_argument("--mask", help="mask.png for Fig. 6")
-    fi.add_argument("--klt-raw", help="--raw-tracks file of a KLT run: Fig. 11 (what each feature reads)")
+    fi.add_argument("--klt-raw", help="--raw-tracks file of a KLT run: the corners it tracked (Fig. 6) "
+                    "and what each one reads (Fig. 11)")
     fi.add_argument("--config")
     fi.add_argument("--out-dir", required=True)
     fi.set_defaults(func=cmd_figures)

@@ -1,6 +1,7 @@
 """Figures in the style of the paper's Fig. 6-10 (PNG + SVG, one question each).
 
-* ``fig6_poi_vs_corners``: mask POIs vs Shi-Tomasi and Harris corners on the first frame.
+* ``fig6_poi_vs_corners``: mask POIs vs the corners KLT tracked (its ``--raw-tracks`` file) on
+  the first frame, drawn as ``refflow pois`` draws it (PNG only).
 * ``fig7_gradient_magnitude``: Sobel gradient magnitude of the first frame.
 * ``fig8_time_histories``: each method against the reference, and the errors.
 * ``fig9_psd``: Welch PSDs (log scale) with the model's modes and their aliases.
@@ -11,6 +12,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,6 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from refflow.figures import poi_figure  # noqa: E402
 from refflow.io import atomic_path  # noqa: E402
 
 from .metrics import DEFAULTS, occlusion_spans  # noqa: E402
@@ -141,43 +144,42 @@ def _first_frame(video: str | os.PathLike[str]) -> np.ndarray:
     return cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
 
 
+def _read_mask(mask_path: str | os.PathLike[str] | None, shape: tuple[int, ...]) -> np.ndarray | None:
+    import cv2
+    if mask_path is None:
+        return None
+    mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+    if mask is None:
+        raise ValueError(f"{mask_path}: could not read the mask image")
+    if mask.shape != shape:
+        raise ValueError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]} but frames are "
+                         f"{shape[1]}x{shape[0]}")
+    return mask
+
+
+def klt_corners(raw_tracks: str | os.PathLike[str]) -> np.ndarray:
+    """Full-frame ``(x, y)`` of the corners a sparse run tracked, from its ``--raw-tracks``
+    file: what KLT detected with its own parameters (recorded in the file's ``meta``)."""
+    with np.load(raw_tracks, allow_pickle=False) as data:
+        xy = np.column_stack([np.asarray(data["x_px"], float), np.asarray(data["y_px"], float)])
+        meta = json.loads(str(data["meta"])) if "meta" in data.files else {}
+    roi = meta.get("roi") or {}
+    return xy + [float(roi.get("x", 0)), float(roi.get("y", 0))]  # ROI pixels -> full frame
+
+
 def fig_features(video: str | os.PathLike[str], mask_path: str | os.PathLike[str] | None,
-                 out_dir: Path) -> list[Path]:
+                 out_dir: Path, *, klt_raw: str | os.PathLike[str] | None = None) -> list[Path]:
+    """Fig. 6 (the mask's POIs against the corners KLT tracked, from a sparse run's
+    ``--raw-tracks`` file; drawn by ``refflow pois``'s own :func:`refflow.figures.poi_figure`)
+    and Fig. 7 (the gradient magnitude), both on the first frame."""
     import cv2
     gray = _first_frame(video)
-    mask = None
-    if mask_path is not None:
-        mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
-        if mask is None:
-            raise ValueError(f"{mask_path}: could not read the mask image")
-        if mask.shape != gray.shape:
-            raise ValueError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]} but frames are "
-                             f"{gray.shape[1]}x{gray.shape[0]}")
-    written = []
-    shi = cv2.goodFeaturesToTrack(gray, maxCorners=200, qualityLevel=0.01, minDistance=5)
-    harris = cv2.goodFeaturesToTrack(gray, maxCorners=200, qualityLevel=0.01, minDistance=5,
-                                     useHarrisDetector=True, k=0.04)
-    shi = np.zeros((0, 2)) if shi is None else shi.reshape(-1, 2)
-    harris = np.zeros((0, 2)) if harris is None else harris.reshape(-1, 2)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5.5))
-    axes[0].imshow(gray, cmap="gray", vmin=0, vmax=255)
-    if mask is not None:
-        ys, xs = np.nonzero(mask > 127)
-        step = max(1, xs.size // 3000)  # a readable dot cloud, not every pixel
-        axes[0].plot(xs[::step], ys[::step], ".", ms=1.5, color="tab:cyan")
-        axes[0].set_title(f"Mask POIs: {xs.size} pixels inside the structure")
-    else:
-        axes[0].set_title("first frame (no mask given)")
-    axes[1].imshow(gray, cmap="gray", vmin=0, vmax=255)
-    axes[1].plot(shi[:, 0], shi[:, 1], "o", mfc="none", mec="tab:orange", ms=6, label=f"Shi-Tomasi ({len(shi)})")
-    axes[1].plot(harris[:, 0], harris[:, 1], "x", color="tab:red", ms=5, label=f"Harris ({len(harris)})")
-    axes[1].set_title("Corner detectors (KLT features)")
-    axes[1].legend(fontsize=8, loc="lower right")
-    for ax in axes:
-        ax.set_xlabel("image x (px)")
-        ax.set_ylabel("image y (px)")
-    fig.tight_layout()
-    written += save(fig, out_dir, "fig6_poi_vs_corners")
+    mask = _read_mask(mask_path, gray.shape)
+    ys, xs = np.nonzero(mask > 127) if mask is not None else (np.zeros(0, int), np.zeros(0, int))
+    corners = klt_corners(klt_raw) if klt_raw is not None else None
+    fig6 = out_dir / "fig6_poi_vs_corners.png"
+    poi_figure(gray, np.column_stack([xs, ys]), corners, fig6)
+    written = [fig6]
 
     gx = cv2.Sobel(gray.astype(np.float32), cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(gray.astype(np.float32), cv2.CV_32F, 0, 1, ksize=3)
@@ -344,7 +346,7 @@ def make_all(*, sensor: str, truth: str, tracks: Sequence[tuple[str, str]], out_
         ax.legend(fontsize=8)
         written += save(fig, out, "fig8_time_histories")
     if video:
-        written += fig_features(video, mask, out)
+        written += fig_features(video, mask, out, klt_raw=klt_raw)
     if klt_raw:
         written += fig_klt_features(klt_raw, tru, video, mask, mm_per_px, out)
     return written

@@ -19,9 +19,11 @@ from typing import Any
 
 import numpy as np
 
+from refflow.spectra import pick_peaks
+
 from .modal import identify
 from .readers import Sensor, model_modes_hz, release_time_s, track_mm
-from .spectra import alias_frequency, band_power, nearest_peak, pick_peaks, welch_psd
+from .spectra import alias_frequency, band_power, nearest_peak, welch_psd
 from .sync import align, datum_offset, estimate_offset, lowpass
 
 DEFAULTS: dict[str, Any] = {
@@ -204,6 +206,127 @@ def amplitude_metrics(time_s: np.ndarray, ref_mm: np.ndarray, meas_mm: np.ndarra
             "p2p_first_cycles_error_pct": _pct(p2p_meas, p2p_ref), "release_s": float(release_s)}
 
 
+def _truth_at_frames(track: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """truth.csv's ``occluded`` flag and ``dx_mm`` at the track's rows, matched by frame number
+    (0 and NaN where the truth has no such frame)."""
+    t = track["time_s"]
+    occluded = np.zeros(t.size)
+    truth_mm = np.full(t.size, np.nan)
+    pos = {int(f): i for i, f in enumerate(truth["frame"])}
+    rows = np.array([pos.get(int(f), -1) for f in track["frame"]])
+    has = rows >= 0
+    occluded[has] = truth["occluded"][rows[has]]
+    truth_mm[has] = truth["dx_mm"][rows[has]]
+    return occluded, truth_mm
+
+
+def _amplitude_of_run(sensor: Sensor, filtered_1khz: np.ndarray, t: np.ndarray, lag_s: float,
+                      ref_mm: np.ndarray, meas_mm: np.ndarray, both: np.ndarray, unocc: np.ndarray,
+                      release_s: float, mode1_hz: float, cycles: int) -> dict[str, Any]:
+    """:func:`amplitude_metrics` at the frame times, and the filtered laser's own maximum
+    over the same span (``max_disp_ref_1khz_mm``)."""
+    amplitude = amplitude_metrics(t + lag_s, ref_mm, meas_mm, unocc, release_s=release_s,
+                                  period_s=1.0 / mode1_hz, cycles=cycles)
+    span_t = t[both] + lag_s
+    in_span = (sensor.time_s >= max(span_t[0], release_s)) & (sensor.time_s <= span_t[-1])
+    laser = filtered_1khz[in_span]
+    max_ref_1khz = float(np.max(np.abs(laser - np.mean(laser)))) if laser.size else float("nan")
+    # max_disp_ref_mm: at the frame times, what a perfect camera could see;
+    # max_disp_ref_1khz_mm: the filtered laser itself, same time span
+    return {**amplitude, "max_disp_ref_1khz_mm": max_ref_1khz}
+
+
+def _error_metrics(t: np.ndarray, err_mm: np.ndarray, err_px: np.ndarray, both: np.ndarray,
+                   unocc: np.ndarray, max_ref: float) -> dict[str, Any]:
+    """RMSE (mm, px, % of the maximum reference displacement), bias, spread, worst error and
+    drift of ``measured - reference`` over the compared frames."""
+    e = err_mm[both]
+    slope = float(np.polyfit(t[both], e, 1)[0]) if both.sum() > 2 else float("nan")
+    return {
+        "rmse_mm": rmse(e),
+        "rmse_px": rmse(err_px[both]),
+        "rmse_pct_of_max_ref": 100.0 * rmse(e) / max_ref if max_ref > 0 else float("nan"),
+        "rmse_unoccluded_mm": rmse(err_mm[unocc]),
+        "bias_mm": float(np.mean(e)),
+        "error_std_mm": float(np.std(e)),
+        "max_error_mm": float(np.max(np.abs(e))),
+        "drift_mm_per_s": slope,
+    }
+
+
+def _sync_truth_metrics(sensor: Sensor, filtered_1khz: np.ndarray, truth: dict[str, np.ndarray],
+                        lag_s: float, max_lag_s: float, nominal_lag_s: float) -> dict[str, float]:
+    """The true clock offset, from the frame-exact truth vs the same reference, and the
+    error of the measured one (nothing where the truth cannot be aligned)."""
+    if not (np.isfinite(truth["dx_mm"]).all() and np.std(truth["dx_mm"]) > 0):
+        return {}
+    try:
+        lag_truth, _ = estimate_offset(sensor.time_s, filtered_1khz, truth["time_s"], truth["dx_mm"],
+                                       valid=truth["occluded"] == 0, max_lag_s=max_lag_s,
+                                       center_s=nominal_lag_s)
+    except ValueError:
+        return {}
+    return {"sync_lag_truth_s": lag_truth, "sync_lag_error_ms": 1e3 * (lag_s - lag_truth)}
+
+
+def _mode_peak_metrics(f: np.ndarray, p_meas: np.ndarray, sensor: Sensor, fps: float,
+                       modes_hz: np.ndarray, segment_s: float) -> dict[str, Any]:
+    """Per model mode: where its (aliased) peak is expected in the measurement's PSD, and the
+    peaks found there and in the raw laser's PSD."""
+    df = float(f[1] - f[0])
+    peaks = pick_peaks(f, p_meas, min_hz=0.5 * df, rel_prominence=1e-6)
+    fr, p_raw = welch_psd(sensor.dx_mm, sensor.rate_hz, segment_s=segment_s)
+    ref_peaks = pick_peaks(fr, p_raw, min_hz=0.5 * df, rel_prominence=1e-6)
+    out: dict[str, Any] = {"psd_resolution_hz": df}
+    for i, fm in enumerate(modes_hz, start=1):
+        expected = alias_frequency(fm, fps)
+        tol = max(2 * df, 0.03 * expected)
+        hit = nearest_peak(peaks, expected, tol)
+        ref_hit = nearest_peak(ref_peaks, fm, max(2 * (fr[1] - fr[0]), 0.03 * fm))
+        out[f"mode{i}_model_hz"] = float(fm)
+        out[f"mode{i}_aliased"] = bool(fm > fps / 2)
+        out[f"mode{i}_expected_hz"] = float(expected)
+        out[f"mode{i}_meas_peak_hz"] = hit["freq_hz"] if hit else float("nan")
+        out[f"mode{i}_ref_peak_hz"] = ref_hit["freq_hz"] if ref_hit else float("nan")
+        out[f"mode{i}_meas_peak_error_hz"] = (hit["freq_hz"] - expected) if hit else float("nan")
+    return out
+
+
+def _lowfreq_metrics(meas_f: np.ndarray, ref_f: np.ndarray, fps: float, lowfreq_hz: float) -> dict[str, float]:
+    """Drift: power below ``lowfreq_hz`` in the measurement and the reference (one segment:
+    the longest, which the lowest band needs)."""
+    fl, pl_meas = welch_psd(meas_f, fps)
+    _, pl_ref = welch_psd(ref_f, fps)
+    # a record shorter than 1 / lowfreq_hz cannot resolve 0.1 Hz: widen the
+    # band to the first non-zero bin rather than report DC leakage alone
+    lf = max(float(lowfreq_hz), float(fl[1] - fl[0]) * 1.0001)
+    lm, lr = band_power(fl, pl_meas, 0.0, lf), band_power(fl, pl_ref, 0.0, lf)
+    return {"lowfreq_band_hz": lf, "lowfreq_power_meas_mm2": lm, "lowfreq_power_ref_mm2": lr,
+            "lowfreq_power_ratio": lm / lr if lr > 0 else float("nan"),
+            "lowfreq_resolution_hz": float(fl[1] - fl[0])}
+
+
+def _spectral_metrics(t: np.ndarray, meas_mm: np.ndarray, ref_mm: np.ndarray, valid: np.ndarray,
+                      sensor: Sensor, fps: float, modes_hz: np.ndarray, p: dict[str, Any]) -> dict[str, Any]:
+    """Mode peaks, mode 1's amplitude ratio and identified frequency, and drift power, from
+    spectra of a gap-free series over the compared span."""
+    span = np.flatnonzero(np.isfinite(ref_mm))
+    sl = slice(span[0], span[-1] + 1)
+    meas_f = _fill_gaps(t[sl], meas_mm[sl], valid[sl])
+    ref_f = ref_mm[sl]
+    f, p_meas = welch_psd(meas_f, fps, segment_s=p["psd_segment_s"])
+    _, p_ref = welch_psd(ref_f, fps, segment_s=p["psd_segment_s"])
+    out = _mode_peak_metrics(f, p_meas, sensor, fps, modes_hz, p["psd_segment_s"])
+    df = float(f[1] - f[0])
+    f1 = float(modes_hz[0])
+    half = max(3 * df, 0.1 * f1)
+    pm, pr = band_power(f, p_meas, f1 - half, f1 + half), band_power(f, p_ref, f1 - half, f1 + half)
+    out["mode1_amplitude_ratio"] = math.sqrt(pm / pr) if pr > 0 else float("nan")
+    out.update(identify_mode1(meas_f, fps, f1))
+    out.update(_lowfreq_metrics(meas_f, ref_f, fps, p["lowfreq_hz"]))
+    return out
+
+
 def evaluate(sensor: Sensor, sim_json: dict[str, Any], truth: dict[str, np.ndarray],
              mm_per_px: float, fps: float, track: dict[str, np.ndarray],
              params: dict[str, Any] | None = None, *, nominal_lag_s: float = 0.0) -> dict[str, Any]:
@@ -216,16 +339,8 @@ def evaluate(sensor: Sensor, sim_json: dict[str, Any], truth: dict[str, np.ndarr
     modes_hz = model_modes_hz(sim_json)[: int(p["mode_count"])]
     t = track["time_s"]
     meas_mm, mm_from_px = track_mm(track, mm_per_px)
-    meas_px = track["dx_px"]
     valid = (track["valid"] != 0) & np.isfinite(meas_mm)
-    # truth.csv rows matched to track rows by frame number
-    occluded = np.zeros(t.size)
-    truth_mm = np.full(t.size, np.nan)
-    pos = {int(f): i for i, f in enumerate(truth["frame"])}
-    rows = np.array([pos.get(int(f), -1) for f in track["frame"]])
-    has = rows >= 0
-    occluded[has] = truth["occluded"][rows[has]]
-    truth_mm[has] = truth["dx_mm"][rows[has]]
+    occluded, truth_mm = _truth_at_frames(track, truth)
     # occluded frames carry no information about the clock offset
     al = align(sensor.time_s, sensor.dx_mm, t, meas_mm, valid=valid & (occluded == 0), cutoff_hz=p["lowpass_hz"],
                order=int(p["lowpass_order"]), max_lag_s=p["max_lag_s"], highpass_hz=p["sync_highpass_hz"],
@@ -237,105 +352,26 @@ def evaluate(sensor: Sensor, sim_json: dict[str, Any], truth: dict[str, np.ndarr
     # trackers measure from their first frame, the laser from rest: one constant
     datum_mm = datum_offset(t, ref_mm, meas_mm, valid & (occluded == 0), datum_s=p["datum_s"])
     meas_mm = meas_mm + datum_mm
-    meas_px = meas_px + datum_mm / mm_per_px
     err_mm = meas_mm - ref_mm
-    err_px = meas_px - ref_mm / mm_per_px
-
+    err_px = (track["dx_px"] + datum_mm / mm_per_px) - ref_mm / mm_per_px
     unocc = both & (occluded == 0)
-
-    release_s = release_time_s(sim_json)
-    amplitude = amplitude_metrics(t + al.lag_s, ref_mm, meas_mm, unocc, release_s=release_s,
-                                  period_s=1.0 / float(modes_hz[0]), cycles=int(p["p2p_cycles"]))
-    max_ref = amplitude["max_disp_ref_mm"]
-    span_t = t[both] + al.lag_s
-    in_span = (sensor.time_s >= max(span_t[0], release_s)) & (sensor.time_s <= span_t[-1])
     filtered_1khz = lowpass(sensor.dx_mm, sensor.rate_hz, cutoff_hz=p["lowpass_hz"], order=int(p["lowpass_order"]))
-    laser = filtered_1khz[in_span]
-    max_ref_1khz = float(np.max(np.abs(laser - np.mean(laser)))) if laser.size else float("nan")
-    e = err_mm[both]
-    slope = float(np.polyfit(t[both], e, 1)[0]) if both.sum() > 2 else float("nan")
-    out: dict[str, Any] = {
-        "frames": int(t.size),
-        "valid_frac": float(np.mean(valid)),
-        "compared_frames": int(both.sum()),
-        "datum_offset_mm": datum_mm,
-        "sync_lag_s": al.lag_s,
-        "sync_lag_nominal_s": float(nominal_lag_s),
-        "sync_corr": al.corr,
-        "sign_flip_suspected": al.sign_flip_suspected,
-        # max_disp_ref_mm: at the frame times, what a perfect camera could see
-        **amplitude,
-        "max_disp_ref_1khz_mm": max_ref_1khz,  # the filtered laser itself, same time span
-        "rmse_mm": rmse(e),
-        "rmse_px": rmse(err_px[both]),
-        "rmse_pct_of_max_ref": 100.0 * rmse(e) / max_ref if max_ref > 0 else float("nan"),
-        "rmse_unoccluded_mm": rmse(err_mm[unocc]),
-        "bias_mm": float(np.mean(e)),
-        "error_std_mm": float(np.std(e)),
-        "max_error_mm": float(np.max(np.abs(e))),
-        "drift_mm_per_s": slope,
-        # truth is from rest too, and frame-exact: no filter, no sync
-        "rmse_vs_truth_mm": rmse(meas_mm[valid] - truth_mm[valid]),
-        "mm_per_px_render": float(mm_per_px),
-        "mm_from_render_scale": mm_from_px,
-    }
+    amplitude = _amplitude_of_run(sensor, filtered_1khz, t, al.lag_s, ref_mm, meas_mm, both, unocc,
+                                  release_time_s(sim_json), float(modes_hz[0]), int(p["p2p_cycles"]))
     raw_mm, raw_px = meas_mm - datum_mm, track["dx_px"]
     scale_ok = valid & (np.abs(raw_px) > 1e-6)
-    out["mm_per_px_track"] = float(np.median(raw_mm[scale_ok] / raw_px[scale_ok])) if scale_ok.sum() else float("nan")
-
-    # the true clock offset, from the frame-exact truth vs the same reference
-    if np.isfinite(truth["dx_mm"]).all() and np.std(truth["dx_mm"]) > 0:
-        try:
-            lag_truth, _ = estimate_offset(sensor.time_s, filtered_1khz, truth["time_s"], truth["dx_mm"],
-                                           valid=truth["occluded"] == 0, max_lag_s=p["max_lag_s"],
-                                           center_s=nominal_lag_s)
-            out["sync_lag_truth_s"] = lag_truth
-            out["sync_lag_error_ms"] = 1e3 * (al.lag_s - lag_truth)
-        except ValueError:
-            pass
-
-    # spectra on a gap-free series over the compared span
-    span = np.flatnonzero(np.isfinite(ref_mm))
-    sl = slice(span[0], span[-1] + 1)
-    ts, ok = t[sl], valid[sl]
-    meas_f = _fill_gaps(ts, meas_mm[sl], ok)
-    ref_f = ref_mm[sl]
-    f, p_meas = welch_psd(meas_f, fps, segment_s=p["psd_segment_s"])
-    _, p_ref = welch_psd(ref_f, fps, segment_s=p["psd_segment_s"])
-    df = float(f[1] - f[0])
-    peaks = pick_peaks(f, p_meas, min_hz=0.5 * df, rel_prominence=1e-6)
-    fr, p_raw = welch_psd(sensor.dx_mm, sensor.rate_hz, segment_s=p["psd_segment_s"])
-    ref_peaks = pick_peaks(fr, p_raw, min_hz=0.5 * df, rel_prominence=1e-6)
-    out["psd_resolution_hz"] = df
-    for i, fm in enumerate(modes_hz, start=1):
-        expected = alias_frequency(fm, fps)
-        tol = max(2 * df, 0.03 * expected)
-        hit = nearest_peak(peaks, expected, tol)
-        ref_hit = nearest_peak(ref_peaks, fm, max(2 * (fr[1] - fr[0]), 0.03 * fm))
-        out[f"mode{i}_model_hz"] = float(fm)
-        out[f"mode{i}_aliased"] = bool(fm > fps / 2)
-        out[f"mode{i}_expected_hz"] = float(expected)
-        out[f"mode{i}_meas_peak_hz"] = hit["freq_hz"] if hit else float("nan")
-        out[f"mode{i}_ref_peak_hz"] = ref_hit["freq_hz"] if ref_hit else float("nan")
-        out[f"mode{i}_meas_peak_error_hz"] = (hit["freq_hz"] - expected) if hit else float("nan")
-    f1 = float(modes_hz[0])
-    half = max(3 * df, 0.1 * f1)
-    pm, pr = band_power(f, p_meas, f1 - half, f1 + half), band_power(f, p_ref, f1 - half, f1 + half)
-    out["mode1_amplitude_ratio"] = math.sqrt(pm / pr) if pr > 0 else float("nan")
-    out.update(identify_mode1(meas_f, fps, f1))
-    # drift: power below 0.1 Hz needs the longest segment
-    fl, pl_meas = welch_psd(meas_f, fps)
-    _, pl_ref = welch_psd(ref_f, fps)
-    # a record shorter than 1 / lowfreq_hz cannot resolve 0.1 Hz: widen the
-    # band to the first non-zero bin rather than report DC leakage alone
-    lf = max(float(p["lowfreq_hz"]), float(fl[1] - fl[0]) * 1.0001)
-    lm, lr = band_power(fl, pl_meas, 0.0, lf), band_power(fl, pl_ref, 0.0, lf)
-    out["lowfreq_band_hz"] = lf
-    out["lowfreq_power_meas_mm2"] = lm
-    out["lowfreq_power_ref_mm2"] = lr
-    out["lowfreq_power_ratio"] = lm / lr if lr > 0 else float("nan")
-    out["lowfreq_resolution_hz"] = float(fl[1] - fl[0])
-
+    out: dict[str, Any] = {
+        "frames": int(t.size), "valid_frac": float(np.mean(valid)), "compared_frames": int(both.sum()),
+        "datum_offset_mm": datum_mm, "sync_lag_s": al.lag_s, "sync_lag_nominal_s": float(nominal_lag_s),
+        "sync_corr": al.corr, "sign_flip_suspected": al.sign_flip_suspected, **amplitude,
+        **_error_metrics(t, err_mm, err_px, both, unocc, amplitude["max_disp_ref_mm"]),
+        # truth is from rest too, and frame-exact: no filter, no sync
+        "rmse_vs_truth_mm": rmse(meas_mm[valid] - truth_mm[valid]),
+        "mm_per_px_render": float(mm_per_px), "mm_from_render_scale": mm_from_px,
+        "mm_per_px_track": float(np.median(raw_mm[scale_ok] / raw_px[scale_ok])) if scale_ok.sum() else float("nan"),
+        **_sync_truth_metrics(sensor, filtered_1khz, truth, al.lag_s, p["max_lag_s"], nominal_lag_s),
+        **_spectral_metrics(t, meas_mm, ref_mm, valid, sensor, fps, modes_hz, p),
+    }
     out.update(occlusion_metrics(t, err_mm, valid, occluded, post_s=p["post_occlusion_s"],
                                  hold_s=p["recovery_hold_s"], threshold_mm=p["recovery_threshold_mm"]))
     out["params"] = {k: p[k] for k in DEFAULTS}

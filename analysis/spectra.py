@@ -1,4 +1,4 @@
-"""Power spectra, peak picking and aliasing of modes above Nyquist."""
+"""Power spectra and aliasing of modes above Nyquist (peak picking: :mod:`refflow.spectra`)."""
 
 from __future__ import annotations
 
@@ -33,38 +33,6 @@ def alias_frequency(freq_hz: float | np.ndarray, rate_hz: float) -> float | np.n
     f = np.asarray(freq_hz, float)
     folded = np.abs(f - rate_hz * np.round(f / rate_hz))
     return float(folded) if folded.ndim == 0 else folded
-
-
-def pick_peaks(freq: np.ndarray, psd: np.ndarray, *, count: int | None = None,
-               min_hz: float = 0.0, rel_prominence: float = 1e-3) -> list[dict[str, float]]:
-    """Local maxima of a PSD, strongest first, with parabolic refinement.
-
-    The peak frequency is refined by a parabola through the log-PSD at the
-    peak bin and its neighbours (for a Hann window this is accurate to a
-    small fraction of a bin).
-
-    Returns
-    -------
-    list of dict
-        ``freq_hz``, ``psd`` (peak density) per peak.
-    """
-    freq = np.asarray(freq, float)
-    psd = np.asarray(psd, float)
-    if freq.size < 3:
-        return []
-    log_psd = np.log(np.maximum(psd, np.max(psd) * 1e-30 + 1e-300))
-    idx, props = signal.find_peaks(psd, prominence=rel_prominence * float(np.max(psd)))
-    peaks = []
-    df = freq[1] - freq[0]
-    for i in idx:
-        if freq[i] < min_hz:
-            continue
-        a, b, c = log_psd[i - 1], log_psd[i], log_psd[i + 1]
-        denom = a - 2 * b + c
-        delta = 0.5 * (a - c) / denom if denom < 0 else 0.0
-        peaks.append({"freq_hz": float(freq[i] + delta * df), "psd": float(psd[i])})
-    peaks.sort(key=lambda p: -p["psd"])
-    return peaks[:count] if count is not None else peaks
 
 
 def nearest_peak(peaks: list[dict[str, float]], target_hz: float, tol_hz: float) -> dict[str, float] | None:

@@ -12,55 +12,21 @@ import math
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from flow.io import InputError, as_uint8
 from refflow import trackcsv
+from refflow.figures import poi_figure as draw_poi_figure
+from refflow.figures import region_colour  # noqa: F401  (flow.modal's figures)
 from refflow.io import atomic_path
-
-# BGR colours of regions 1, 2, ... (a colour-blind-safe palette, Okabe-Ito), repeated beyond 8.
-REGION_COLOURS = ((0, 220, 0), (0, 159, 230), (233, 180, 86), (0, 94, 213), (66, 228, 240),
-                  (178, 114, 0), (167, 121, 204), (115, 158, 0))
-
-
-def region_colour(label: int) -> tuple[int, int, int]:
-    """BGR colour of region ``label`` (1-based) in the figures."""
-    return REGION_COLOURS[(int(label) - 1) % len(REGION_COLOURS)]
+from refflow.spectra import pick_peaks
 
 
 def poi_figure(reference: np.ndarray, poi_xy: np.ndarray, corners_xy: np.ndarray,
                path: str | Path, *, scale: int | None = None, region: np.ndarray | None = None) -> None:
-    """Write a side-by-side PNG: POIs (left, green; each region in its own colour where
-    ``region`` gives the POIs' labels) and corners (right, red) on the reference ROI.
-
-    ``scale`` enlarges small ROIs so single pixels stay visible (default: to ~600 px wide).
-    """
-    height, width = reference.shape
-    if scale is None:
-        scale = max(1, int(round(600 / max(width, 1))))
-    base = cv2.cvtColor(as_uint8(reference), cv2.COLOR_GRAY2BGR)
-    base = cv2.resize(base, (width * scale, height * scale), interpolation=cv2.INTER_NEAREST)
-    left, right = base.copy(), base.copy()
-    radius = max(1, scale // 2)
-    points = np.asarray(poi_xy).reshape(-1, 2)
-    labels = np.ones(len(points), int) if region is None else np.asarray(region, int)
-    for (x, y), label in zip(points, labels, strict=True):
-        cv2.circle(left, (int(x * scale + scale // 2), int(y * scale + scale // 2)), radius,
-                   region_colour(label), -1)
-    for x, y in np.asarray(corners_xy).reshape(-1, 2):
-        cv2.circle(right, (int(round(x * scale)), int(round(y * scale))), 3 * radius + 2, (0, 0, 255), 2)
-    label = (cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 0), 2)
-    cv2.putText(left, f"mask POIs: {len(poi_xy)}", (8, 22), label[0], label[1], label[2], label[3])
-    if region is not None and len(np.unique(labels)) > 1:
-        for row, value in enumerate(np.unique(labels)):
-            cv2.putText(left, f"region {value}", (8, 46 + 22 * row), label[0], label[1],
-                        region_colour(value), label[3])
-    cv2.putText(right, f"corners (KLT): {len(corners_xy)}", (8, 22), label[0], label[1], label[2], label[3])
-    gap = np.full((base.shape[0], 8, 3), 255, np.uint8)
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.hstack([left, gap, right])):
-            raise OSError(f"cannot write {path}")
+    """:func:`refflow.figures.poi_figure` (paper Fig. 6, shared with ``analysis``) of a reference
+    in any dtype (rounded and clipped to uint8, as KLT's corner detection sees it)."""
+    draw_poi_figure(as_uint8(reference), poi_xy, corners_xy, path, scale=scale, region=region)
 
 
 def read_measurements(path: str | Path) -> list[dict[str, Any]]:
@@ -143,16 +109,8 @@ def dominant_frequency(time_s: np.ndarray, values: np.ndarray, *,
     amplitude = np.abs(np.fft.rfft(samples * window, n_fft)) * 2 / window.sum()
     freqs = np.fft.rfftfreq(n_fft, dt)
     floor = min_hz if min_hz is not None else 1.0 / (samples.size * dt)
-    search = np.flatnonzero(freqs >= floor)
-    if search.size < 3:
-        return None, freqs, amplitude
-    k = int(search[np.argmax(amplitude[search])])
-    if 0 < k < len(amplitude) - 1:
-        a, b, c = np.log(amplitude[k - 1:k + 2] + 1e-300)
-        shift = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else 0.0
-    else:
-        shift = 0.0
-    return float(freqs[k] + shift * (freqs[1] - freqs[0])), freqs, amplitude
+    peaks = pick_peaks(freqs, amplitude, count=1, min_hz=floor, rel_prominence=0.0)
+    return (peaks[0]["freq_hz"] if peaks else None), freqs, amplitude
 
 
 def spectrum_figure(series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], path: str | Path, *,

@@ -31,16 +31,24 @@ def deep_merge(base: Mapping[str, Any], override: Mapping[str, Any] | None) -> d
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
-    """Read a scenario config (YAML or JSON); a clear ``ValueError`` if unusable."""
+    """Read a config file: YAML, or JSON where the name ends in ``.json`` (parsed as JSON,
+    whose numbers YAML 1.1 can read differently: ``1e5`` is a string there). The one loader
+    of every package's configs (scenario configs, stage configs, gates); an empty file is an
+    empty mapping. A ``ValueError`` naming the file and what is wrong with it otherwise.
+    """
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"config file {path} does not exist")
+    text = path.read_text()
     try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise ValueError(f"config file {path} is not valid YAML/JSON: {err}") from None
+        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+    except (yaml.YAMLError, json.JSONDecodeError) as err:
+        kind = "JSON" if path.suffix == ".json" else "YAML"
+        raise ValueError(f"config file {path} is not valid {kind}: {err}") from None
+    if data is None:
+        return {}
     if not isinstance(data, dict):
-        raise ValueError(f"config file {path} must hold a mapping, got {type(data).__name__}")
+        raise ValueError(f"config file {path} must hold a mapping at the top level, got {type(data).__name__}")
     return data
 
 

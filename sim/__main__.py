@@ -15,31 +15,13 @@ import argparse
 import dataclasses
 import json
 import sys
-from pathlib import Path
-from typing import Any
 
+from refflow.config import load_config
 from sim.beam import SimConfig, modal_analysis, simulate, tune_to_hz
 
 
-def load_config(path: str | None) -> dict[str, Any]:
-    """Read a YAML or JSON scenario config (empty dict without a path)."""
-    if path is None:
-        return {}
-    text = Path(path).read_text()
-    if path.endswith(".json"):
-        data = json.loads(text)
-    else:
-        import yaml
-        data = yaml.safe_load(text)
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ValueError(f"{path} must hold a mapping at the top level, got {type(data).__name__}")
-    return data
-
-
 def _modes(args: argparse.Namespace) -> int:
-    raw = load_config(args.config)
+    raw = load_config(args.config) if args.config else {}
     cfg = SimConfig.from_dict(raw)
     result = modal_analysis(cfg, n_modes=args.n_modes)
     if args.tune_to_hz is not None:
@@ -64,7 +46,7 @@ def _modes(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    raw = load_config(args.config)
+    raw = load_config(args.config) if args.config else {}
     sidecar = simulate(raw, args.out_dir, progress=not args.quiet)
     speed = sidecar["timings"]["simulated_s_per_wall_s"]
     print(f"wrote {args.out_dir}/sensor.csv, shapes.npz, sim.json "

@@ -16,22 +16,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
-from typing import Any
 
-
-def _load_config(path: str | None) -> dict[str, Any]:
-    if path is None:
-        return {}
-    p = Path(path)
-    if not p.is_file():
-        raise ValueError(f"config {p} not found")
-    import yaml
-    with p.open() as fh:
-        data = yaml.safe_load(fh) or {}
-    if not isinstance(data, dict):
-        raise ValueError(f"config {p}: expected a mapping at the top level, got {type(data).__name__}")
-    return data
+from refflow.config import load_config
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -76,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
                                    peak_mm=args.peak_mm)
             print(args.out)
             return 0
-        config = _load_config(args.config)
+        config = load_config(args.config) if args.config else {}
         if args.command == "regions":
             from sim.render import write_regions
             info = write_regions(config, args.out)

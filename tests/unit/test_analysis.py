@@ -7,8 +7,9 @@ import pytest
 
 from analysis.metrics import occlusion_metrics, rmse
 from analysis.modal import cantilever_shape, compare_with_model, identify, mac
-from analysis.spectra import alias_frequency, pick_peaks, welch_psd
+from analysis.spectra import alias_frequency, welch_psd
 from analysis.sync import align, estimate_offset, lowpass, xcorr_lag
+from refflow.spectra import pick_peaks
 
 
 def _beam_like(t):

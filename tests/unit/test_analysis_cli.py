@@ -118,8 +118,25 @@ def test_figures_6_7_from_video(tmp_path):
     mask[20:100, 74:86] = 255
     cv2.imwrite(str(tmp_path / "mask.png"), mask)
     written = fig_features(video, tmp_path / "mask.png", tmp_path)
-    assert {p.name for p in written} == {"fig6_poi_vs_corners.png", "fig6_poi_vs_corners.svg",
+    assert {p.name for p in written} == {"fig6_poi_vs_corners.png",
                                          "fig7_gradient_magnitude.png", "fig7_gradient_magnitude.svg"}
+    # Fig. 6's corners are those a KLT run tracked (its --raw-tracks file, ROI pixels), drawn
+    # where they are in the frame: a red ring around (30, 30) = ROI (20, 30) + origin (10, 0).
+    raw = tmp_path / "klt.npz"
+    meta = json.dumps({"roi": {"x": 10, "y": 0, "width": 150, "height": h}})
+    np.savez(raw, meta=np.array(meta), x_px=np.array([20.0], np.float32), y_px=np.array([30.0], np.float32))
+    fig_features(video, tmp_path / "mask.png", tmp_path, klt_raw=raw)
+    image = cv2.imread(str(tmp_path / "fig6_poi_vs_corners.png"))
+    scale = round(600 / w)
+    right = image[:, w * scale + 8:]
+    assert image.shape == (h * scale, 2 * w * scale + 8, 3)
+    radius = 3 * (scale // 2) + 2
+    assert tuple(right[30 * scale, 30 * scale + radius]) == (0, 0, 255)
+    assert tuple(right[30 * scale, 20 * scale + radius]) != (0, 0, 255)
+    # and the mask's POIs in green on the left, every mask pixel
+    centre = scale // 2
+    assert tuple(image[50 * scale + centre, 80 * scale + centre]) == (0, 220, 0)
+    assert tuple(image[50 * scale + centre, 60 * scale + centre]) != (0, 220, 0)
 
 
 def test_modal_cli(scenario, tmp_path):
