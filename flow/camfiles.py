@@ -501,6 +501,44 @@ class PhantomCine(CameraFile):
             raise InputError(f"{self.path} does not exist: give the Phantom .cine file")
         name = self.path.name
         self._size = size = self.path.stat().st_size
+        (compression, first_no, count, off_bitmap, off_setup, off_offsets, trig_frac,
+         trig_sec) = self._read_file_header(name, size)
+        (_bi_size, width, height, _planes, bit_count, bi_compression, size_image,
+         *_rest) = _BITMAP_HEADER.unpack(self._read_bytes(off_bitmap, _BITMAP_HEADER.size))
+        setup_length, rate, cfa, real_bpp = self._read_setup(name, off_setup, size)
+        if cfa != 0 or bit_count in (24, 48):
+            raise InputError(f"{name} is a colour recording (CFA {cfa}, {bit_count} bits per "
+                             "pixel), which is not supported; save it as grey (monochrome) "
+                             "from the Phantom software")
+        if width <= 0 or height == 0:
+            raise InputError(f"{name}: the image size in its header is {width}x{height}; the "
+                             "header is damaged, save the recording again")
+
+        self.width, self.height = width, abs(height)
+        self.frame_count = count
+        self.fps = float(rate)
+        self.frame_step = 1
+        self.first_frame_number = first_no
+        self.trigger_mode = None
+        self.trigger_time_posix = trig_sec + (trig_frac & ~3) / 2.0**32
+        self._set_image_layout(name, bi_compression, bit_count, real_bpp, height, size_image)
+        self._read_image_offsets(name, off_offsets, count, size)
+
+        self.timestamps_note = None
+        self._times = self._read_time_block(off_setup + setup_length, off_offsets, count)
+        self.has_timestamps = self._times is not None
+        self.header = {
+            "Compression": compression, "FirstImageNo": first_no, "ImageCount": count,
+            "OffImageHeader": off_bitmap, "OffSetup": off_setup,
+            "OffImageOffsets": off_offsets, "TriggerTime": self.trigger_time_posix,
+            "biWidth": width, "biHeight": height, "biBitCount": bit_count,
+            "biCompression": bi_compression, "biSizeImage": size_image,
+            "FrameRate": rate, "CFA": cfa, "RealBPP": real_bpp, "SetupLength": setup_length,
+        }
+
+    def _read_file_header(self, name: str, size: int) -> tuple[int, ...]:
+        """The CINEFILEHEADER's fields the reader uses, checked: ``(compression, first_no, count,
+        off_bitmap, off_setup, off_offsets, trig_frac, trig_sec)``."""
         if size < _CINE_HEADER.size:
             raise InputError(f"{name} is {size} bytes, shorter than a cine header: it is "
                              "truncated or not a cine file; copy it again")
@@ -525,9 +563,11 @@ class PhantomCine(CameraFile):
                 raise InputError(f"{name}: the header places its {label} at bytes {offset}.."
                                  f"{offset + length}, beyond the file's {size} bytes: the file "
                                  "is truncated or damaged; copy it again")
-        (_bi_size, width, height, _planes, bit_count, bi_compression, size_image,
-         *_rest) = _BITMAP_HEADER.unpack(self._read_bytes(off_bitmap, _BITMAP_HEADER.size))
+        return compression, first_no, count, off_bitmap, off_setup, off_offsets, trig_frac, trig_sec
 
+    def _read_setup(self, name: str, off_setup: int, size: int) -> tuple[int, int, int, int]:
+        """``(Length, frame rate, CFA, RealBPP)`` of the SETUP block (CFA and RealBPP 0 in a
+        SETUP older than 2002)."""
         setup = self._read_bytes(off_setup, min(_SETUP_READ, size - off_setup))
         setup_length = struct.unpack_from("<H", setup, _SETUP_LENGTH)[0]
         rate = rate16 = struct.unpack_from("<H", setup, _SETUP_FRAMERATE16)[0]
@@ -539,21 +579,11 @@ class PhantomCine(CameraFile):
         if rate <= 0:
             raise InputError(f"{name}: the SETUP holds no frame rate (FrameRate is 0); the "
                              "header is damaged, save the recording again")
-        if cfa != 0 or bit_count in (24, 48):
-            raise InputError(f"{name} is a colour recording (CFA {cfa}, {bit_count} bits per "
-                             "pixel), which is not supported; save it as grey (monochrome) "
-                             "from the Phantom software")
-        if width <= 0 or height == 0:
-            raise InputError(f"{name}: the image size in its header is {width}x{height}; the "
-                             "header is damaged, save the recording again")
+        return setup_length, rate, cfa, real_bpp
 
-        self.width, self.height = width, abs(height)
-        self.frame_count = count
-        self.fps = float(rate)
-        self.frame_step = 1
-        self.first_frame_number = first_no
-        self.trigger_mode = None
-        self.trigger_time_posix = trig_sec + (trig_frac & ~3) / 2.0**32
+    def _set_image_layout(self, name: str, bi_compression: int, bit_count: int, real_bpp: int, height: int,
+                          size_image: int) -> None:
+        """Bytes per image and row, row order, dtype and bit depth of the image packing."""
         self._packing = bi_compression
         self._bottom_up = False
         pixels = self.width * self.height
@@ -589,6 +619,8 @@ class PhantomCine(CameraFile):
                              f"{self.width}x{self.height} image of this packing takes "
                              f"{self._frame_bytes}: the header is damaged or the layout unknown")
 
+    def _read_image_offsets(self, name: str, off_offsets: int, count: int, size: int) -> None:
+        """The images' file positions; refuses a file whose last images are cut off."""
         self._offsets = np.frombuffer(self._read_bytes(off_offsets, 8 * count), "<i8").copy()
         first = int(self._offsets[0])
         annotation = 8  # the smallest annotation block: its size and the image size
@@ -599,18 +631,6 @@ class PhantomCine(CameraFile):
         if complete < count:
             raise InputError(f"{name} is truncated: {complete} of its {count} images are "
                              f"complete in its {size} bytes; copy the file again")
-
-        self.timestamps_note = None
-        self._times = self._read_time_block(off_setup + setup_length, off_offsets, count)
-        self.has_timestamps = self._times is not None
-        self.header = {
-            "Compression": compression, "FirstImageNo": first_no, "ImageCount": count,
-            "OffImageHeader": off_bitmap, "OffSetup": off_setup,
-            "OffImageOffsets": off_offsets, "TriggerTime": self.trigger_time_posix,
-            "biWidth": width, "biHeight": height, "biBitCount": bit_count,
-            "biCompression": bi_compression, "biSizeImage": size_image,
-            "FrameRate": rate, "CFA": cfa, "RealBPP": real_bpp, "SetupLength": setup_length,
-        }
 
     def _read_time_block(self, start: int, stop: int, count: int) -> np.ndarray | None:
         """Seconds after the first image from the TIME64 tagged block.

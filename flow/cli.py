@@ -7,599 +7,97 @@ spectrum of measured CSVs), ``modal`` (frequencies, damping and mode shapes of
 several measured points), ``export`` (UFF time histories for modal software),
 ``gui`` (a page in the browser to draw, scale, run and look).
 
-Bad input ends with a one-line message on stderr and exit code 2, and no output
-file; anything else that goes wrong is a bug and shows its traceback.
+This module parses arguments and turns them into the options of :mod:`flow.options`;
+:mod:`flow.pipeline` measures. Bad input ends with a one-line message on stderr and exit
+code 2, and no output file; anything else that goes wrong is a bug and shows its traceback.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
-import os
 import sys
-import time
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from flow import registry
-from flow.camfiles import companion_files
+from flow import pipeline, registry
 from flow.export import add_parser as add_export_parser
 from flow.gui import add_parser as add_gui_parser
 from flow.gui.project import PROJECT_HELP, expand_project_argv
-from flow.io import FrameSource, InputError, Roi, quiet_decoder_logs
-from flow.jsonfiles import json_number, load_json, shown
+from flow.io import InputError, quiet_decoder_logs
 from flow.modal import add_parser as add_modal_parser
+from flow.options import (
+    BackgroundOptions,
+    FilterOptions,
+    MergeOptions,
+    OutputOptions,
+    RegionOptions,
+    ScaleOptions,
+    SourceOptions,
+    TrackOptions,
+)
 from flow.outputs import check_outputs, claimed
-from refflow import trackcsv
-from refflow.io import atomic_paths, json_text, versions, write_json
+from flow.scale import positive
+from refflow.io import versions, write_json
 
 EXIT_USAGE = 2
 
-
-def _default_method() -> tuple[str, str | None]:
-    names = registry.available()
-    if "deepflow" in names:
-        return "deepflow", None
-    reason = registry.unavailable().get("deepflow")
-    return "deepflow-opencv", ("clean-room `deepflow` is not available"
-                               + (f" ({reason})" if reason else "")
-                               + "; using deepflow-opencv")
+# Kept under their old names here: the GUI's and the tests' callers ask the CLI.
+available_cores = pipeline.available_cores
+_default_method = pipeline.default_method
 
 
-def _finite_or_none(value: float | None) -> float | None:
-    return value if value is not None and math.isfinite(value) else None
+def source_options(args: argparse.Namespace) -> SourceOptions:
+    return SourceOptions(input=args.input, roi=args.roi, fps=args.fps, calibration=args.calibration,
+                         video_origin=args.video_origin, allow_truncated=getattr(args, "allow_truncated", False))
 
 
-def _positive(name: str, value: float | None, what: str) -> None:
-    if value is not None and not (math.isfinite(value) and value > 0):
-        raise InputError(f"{name} {value} is not positive: pass {what} > 0")
+def region_options(args: argparse.Namespace) -> RegionOptions:
+    return RegionOptions(masks=tuple(args.mask or ()), rect=args.rect, polygon=args.polygon,
+                         grid_step=args.grid_step)
 
 
-def _open(args: argparse.Namespace, *, need_time: bool = True) -> FrameSource:
-    roi = Roi.parse(args.roi) if args.roi else None
-    return FrameSource(args.input, roi=roi, fps=args.fps, require_fps=need_time,
-                       allow_truncated=getattr(args, "allow_truncated", False))
+def scale_options(args: argparse.Namespace) -> ScaleOptions:
+    return ScaleOptions(mm_per_px=args.mm_per_px, known_length=args.known_length, between=args.between,
+                        scale_file=args.scale_file)
 
 
-def _video_origin(args: argparse.Namespace) -> tuple[int, int]:
-    text = getattr(args, "video_origin", None)
-    if text is None:
-        return 0, 0
-    if not args.calibration:
-        raise InputError("--video-origin places the video on the calibrated sensor: pass --calibration too")
-    if text.lower().endswith(".json"):
-        data = load_json(text, f"--video-origin {text!r}")
-        origin = data.get("video_origin_px") if isinstance(data, dict) else None
-        if not (isinstance(origin, list) and len(origin) == 2
-                and all(isinstance(v, int) and not isinstance(v, bool) for v in origin)):
-            raise InputError(f"--video-origin {text!r} needs 'video_origin_px': [X, Y] (two integers), "
-                             f"got {shown(origin)}")
-        text = f"{origin[0]},{origin[1]}"
-    try:
-        x, y = (int(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(f"--video-origin {text!r} is not X,Y (two integers) or a JSON file") from None
-    if x < 0 or y < 0:
-        raise InputError(f"--video-origin {text!r} must not be negative")
-    return x, y
+def filter_options(args: argparse.Namespace) -> FilterOptions:
+    return FilterOptions(mode=args.filter, threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold)
 
 
-def _undistorter(args: argparse.Namespace, source: FrameSource) -> tuple[Any, dict[str, Any] | None]:
-    """The undistortion of --calibration for the frames' ROI (None without a calibration).
-
-    With ``--video-origin X,Y`` the video is a window of the calibrated sensor (a
-    cropped recording) whose pixel (0, 0) is sensor pixel (X, Y).
-    """
-    origin = _video_origin(args)
-    if not args.calibration:
-        return None, None
-    from flow.calibration import Undistorter, load_calibration
-
-    calibration = load_calibration(args.calibration)
-    if origin == (0, 0):
-        return Undistorter(calibration, source.roi, source.size), calibration
-    sensor = tuple(calibration.get("image_size", ()))
-    if len(sensor) != 2:
-        raise InputError(f"calibration file {args.calibration!r} has no image_size: --video-origin needs "
-                         "the calibrated sensor's size")
-    roi = source.roi
-    on_sensor = Roi(roi.x + origin[0], roi.y + origin[1], roi.width, roi.height)
-    if on_sensor.x + source.size[0] - roi.x > sensor[0] or on_sensor.y + source.size[1] - roi.y > sensor[1]:
-        raise InputError(f"a {source.size[0]}x{source.size[1]} video at --video-origin {origin[0]},{origin[1]} "
-                         f"reaches beyond the {sensor[0]}x{sensor[1]} calibrated sensor")
-    return Undistorter(calibration, on_sensor, sensor, video_origin=origin), calibration
+def track_options(args: argparse.Namespace) -> TrackOptions:
+    """What `refflow track` was asked, from its parsed arguments."""
+    return TrackOptions(
+        source=source_options(args), region=region_options(args), method=args.method,
+        params=tuple(args.param or ()), preset=args.preset, reference_frame=args.reference_frame,
+        reference_average=args.reference_average, frames=args.frames, max_frames=args.max_frames,
+        background=BackgroundOptions(mask=args.background_mask, rect=args.background_rect,
+                                     model=args.background_model),
+        scale=scale_options(args), filter=filter_options(args),
+        outputs=OutputOptions(csv=args.out, raw_tracks=args.raw_tracks, poi_tracks=args.save_poi_tracks),
+        jobs=args.jobs, progress=not args.no_progress)
 
 
-def _mask_for(args: argparse.Namespace, source: FrameSource, undistort: Any) -> np.ndarray:
-    """The POI mask in the pixels the frames are measured in, as int32 region labels (0: no POI).
-
-    Masks, rectangles and polygons are drawn on the raw video frames (what any
-    viewer shows); with a calibration they are carried into the undistorted
-    frames, where the flow is computed. Regions: a labelled mask PNG (grey values
-    1..N), or several --mask files (one region each, or their labels in turn).
-    """
-    from flow import poi
-
-    given = [a for a in ("mask", "rect", "polygon") if getattr(args, a)]
-    if len(given) != 1:
-        raise InputError("pass exactly one of --mask MASK.png, --rect X,Y,W,H or --polygon X1,Y1,...")
-    if args.mask:
-        labels = np.zeros((source.roi.height, source.roi.width), np.int32)
-        for path in args.mask:
-            found = poi.load_mask(path, frame_size=source.size, roi=source.roi,
-                                  rotation_deg=source.rotation_deg, notes=source.notes, labels=True)
-            both = int(((labels > 0) & (found > 0)).sum())
-            if both:
-                raise InputError(f"mask {path!r} overlaps the masks before it in {both} pixels: "
-                                 "a pixel belongs to one region; draw the regions apart")
-            labels = np.where(found > 0, found + labels.max(), labels).astype(np.int32)
-    elif args.rect:
-        labels = poi.rect_mask(args.rect, roi=source.roi).astype(np.int32)
-    else:
-        labels = poi.polygon_mask(args.polygon, roi=source.roi).astype(np.int32)
-    if undistort is None:
-        return labels
-    moved = np.zeros(labels.shape, np.int32)
-    for label in np.unique(labels[labels > 0]):
-        moved[undistort.map_mask(labels == label)] = label
-    return moved
-
-
-def _regions(labels: np.ndarray, poi_xy: np.ndarray, grid_step: int) -> list[int]:
-    """The labels of the regions measured; refuses a region the POI grid leaves empty."""
-    present = [int(v) for v in np.unique(labels[labels > 0])]
-    at_pois = set(np.unique(labels[poi_xy[:, 1], poi_xy[:, 0]]).tolist())
-    empty = [label for label in present if label not in at_pois]
-    if empty:
-        raise InputError(f"region(s) {', '.join(map(str, empty))} of the mask hold no POI inside the ROI with "
-                         f"--grid-step {grid_step}: draw them larger, lower --grid-step or widen --roi")
-    return present
-
-
-def _mask_cut_by_roi(args: argparse.Namespace, source: FrameSource, notes: list[str]) -> int:
-    """Pixels of a full-frame --mask that --roi leaves out; warns (and notes) when any."""
-    from flow import poi
-
-    outside = sum(poi.pixels_outside_roi(path, frame_size=source.size, roi=source.roi)
-                  for path in args.mask or [])
-    if outside:
-        message = (f"--roi {source.roi.as_text()} leaves {outside} of the mask's pixels out: only the mask "
-                   "inside the ROI is measured (widen --roi to measure all of it)")
-        notes.append(message)
-        print(f"refflow {args.command}: warning: {message}", file=sys.stderr)
-    return outside
-
-
-def _background_for(args: argparse.Namespace, source: FrameSource, undistort: Any,
-                    poi_mask: np.ndarray) -> Any:
-    """The static points of --background-mask/--background-rect (None without them)."""
-    from flow import poi
-    from flow.background import Background
-
-    if args.background_mask and args.background_rect:
-        raise InputError("pass one of --background-mask and --background-rect, not both")
-    if args.background_mask:
-        mask = poi.load_mask(args.background_mask, frame_size=source.size, roi=source.roi,
-                             what="background mask", instead="--background-rect",
-                             rotation_deg=source.rotation_deg, notes=source.notes)
-    elif args.background_rect:
-        mask = poi.rect_mask(args.background_rect, roi=source.roi)
-    else:
-        return None
-    if undistort is not None:
-        mask = undistort.map_mask(mask)
-    overlap = int((mask & poi_mask).sum())
-    if overlap:
-        raise InputError(f"the background region overlaps the POIs in {overlap} pixels: mark only "
-                         "parts of the scene that do not move (a wall, the ground), away from the structure")
-    if mask.sum() < 3:
-        raise InputError("the background region holds no pixel inside the ROI: mark a static area "
-                         "within --roi")
-    return Background.from_mask(mask, model=args.background_model)
-
-
-def _method_params(args: argparse.Namespace, name: str) -> dict[str, Any]:
-    params: dict[str, Any] = {}
-    for item in args.param or []:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise InputError(f"--param {item!r} is not KEY=VALUE")
-        for cast in (int, float):
-            try:
-                params[key] = cast(value)
-                break
-            except ValueError:
-                continue
-        else:
-            params[key] = {"true": True, "false": False, "none": None}.get(value.lower(), value)
-    if args.preset:
-        if name != "dis":
-            raise InputError(f"--preset applies to the dis method only, not {name!r}")
-        params["preset"] = args.preset
-    return params
-
-
-def _build_method(name: str, params: dict[str, Any]) -> Any:
-    try:
-        return registry.get_method(name, **params)
-    except (TypeError, ValueError) as err:
-        # The method constructors reject bad keyword values with ValueError: here that
-        # value came from the command line, so it is the user's to fix.
-        raise InputError(f"bad --param for {name}: {err} (see `refflow methods`)") from None
-
-
-def cmd_methods(args: argparse.Namespace) -> int:
-    width = max(len(n) for n in registry.available())
-    kinds = registry.kinds()
-    for name, summary in registry.describe().items():
-        print(f"{name:<{width}}  [{kinds[name]}]  {summary}")
-    for name, reason in registry.unavailable().items():
-        print(f"({name} unavailable: {reason})")
-    return 0
-
-
-def _scale_from_file(path: str, undistort_points: Any, frame_size: tuple[int, int] | None) -> tuple[float, str]:
-    """``(mm_per_px, how)`` from a JSON file: its ``mm_per_px``, or a known length
-    ``known_length_mm`` between two raw video points ``between_px`` [X1, Y1, X2, Y2]
-    (measured in the undistorted image with a calibration, like --known-length)."""
-    from flow.calibration import scale_from_known_length
-
-    data = load_json(path, f"scale file {path}")
-    data = data if isinstance(data, dict) else {}
-    if "known_length_mm" in data or "between_px" in data:
-        length, between = data.get("known_length_mm"), data.get("between_px")
-        number = json_number(length)
-        points = [json_number(v) for v in between] if isinstance(between, list) else []
-        if not (number is not None and 0 < number < math.inf and len(points) == 4
-                and all(v is not None and math.isfinite(v) for v in points)):
-            raise InputError(f"scale file {path}: 'known_length_mm' needs a positive number and 'between_px' "
-                             f"four numbers X1,Y1,X2,Y2, got {shown(length)} and {shown(between)}")
-        text = ",".join(f"{v:.6f}" for v in points)
-        mm_per_px = scale_from_known_length(number, text, undistort_points, frame_size=frame_size)
-        where = " (undistorted)" if undistort_points is not None else ""
-        return mm_per_px, f"known length {number} mm between {text} from {path}{where}"
-    value = data.get("mm_per_px")
-    number = json_number(value)
-    if number is None or not 0 < number < math.inf:
-        raise InputError(f"scale file {path} needs a positive number under 'mm_per_px' (or "
-                         f"'known_length_mm' and 'between_px'), got {shown(value)}")
-    return number, f"mm_per_px from {path}"
-
-
-def _check_scale_options(args: argparse.Namespace) -> None:
-    """Reject bad scale options before any frame is read."""
-    _positive("--mm-per-px", args.mm_per_px, "the image scale in mm per pixel")
-    _positive("--known-length", args.known_length, "the known length in mm")
-    given = [args.mm_per_px is not None, args.known_length is not None, args.scale_file is not None]
-    if sum(given) > 1:
-        raise InputError("pass one scale: --mm-per-px, --known-length/--between or --scale-file")
-    if (args.known_length is None) != (args.between is None):
-        raise InputError("--known-length needs --between X1,Y1,X2,Y2 (and vice versa)")
-
-
-# No camera images a structure at a kilometre per pixel: a larger scale is a typing error
-# (and would overflow the mm columns).
-MAX_MM_PER_PX = 1e6
-
-
-def _scale(args: argparse.Namespace, calibration: dict[str, Any] | None,
-           frame_size: tuple[int, int] | None) -> tuple[float, str]:
-    """``(mm_per_px, how)``; NaN when no scale was given (mm columns are then NaN).
-
-    ``calibration``: the run's calibration summary (``_calibration_summary``, also what a
-    part's sidecar holds) or None. Scale points are raw video pixels; with a calibration
-    they are undistorted first, because the displacements are measured undistorted. `track`
-    and `merge` both come here, so the two give the same mm per pixel.
-    """
-    from flow.calibration import point_undistorter, scale_from_known_length
-
-    undistort_points = point_undistorter(calibration)
-    if args.scale_file is not None:
-        mm_per_px, how = _scale_from_file(args.scale_file, undistort_points, frame_size)
-    elif args.known_length is not None:
-        mm_per_px = scale_from_known_length(args.known_length, args.between, undistort_points,
-                                            frame_size=frame_size)
-        where = " (undistorted)" if undistort_points is not None else ""
-        how = f"known length {args.known_length} mm between {args.between}{where}"
-    elif args.mm_per_px is not None:
-        mm_per_px, how = args.mm_per_px, "--mm-per-px"
-    else:
-        return float("nan"), "none (mm columns are NaN)"
-    if not mm_per_px < MAX_MM_PER_PX:
-        raise InputError(f"scale {mm_per_px:g} mm per pixel ({how}) is beyond {MAX_MM_PER_PX:g} (a kilometre "
-                         "per pixel): check the scale's units and points")
-    return mm_per_px, how
-
-
-def _parse_frames(text: str | None) -> tuple[int, int | None] | None:
-    if text is None:
-        return None
-    start_text, sep, stop_text = text.partition(":")
-    try:
-        start = int(start_text) if start_text else 0
-        stop = int(stop_text) if stop_text else None
-    except ValueError:
-        start, stop = -1, None
-    if not sep or start < 0 or (stop is not None and stop <= start):
-        raise InputError(f"--frames {text!r} is not START:END with 0 <= START < END (END exclusive, "
-                         "may be left out for 'to the end'), e.g. 0:300")
-    return start, stop
-
-
-def _check_measure_options(args: argparse.Namespace) -> None:
-    if not 0 <= args.threshold_ratio:
-        raise InputError(f"--threshold-ratio {args.threshold_ratio} is negative: pass a fraction >= 0")
-    if not -1 <= args.mcr_threshold <= 1:
-        raise InputError(f"--mcr-threshold {args.mcr_threshold} is outside [-1, 1]: it is a correlation")
-
-
-def _output_names(args: argparse.Namespace) -> list[Path]:
-    """The files a run writes, in writing order (the CSV last); checked before any work."""
-    raw, poi_tracks = getattr(args, "raw_tracks", None), args.save_poi_tracks
-    names = ([Path(raw)] if raw else []) + ([Path(poi_tracks)] if poi_tracks else []) \
-        + ([Path(args.out).with_suffix(".json"), Path(args.out)] if args.out else [])
-    check_outputs(names, _input_paths(args), option="--out (the sidecar is <out>.json)")
-    return names
-
-
-def _input_paths(args: argparse.Namespace) -> list[tuple[str, Path]]:
-    """``(option, path)`` of every file the run reads (outputs must not be one of them)."""
-    found: list[tuple[str, Path]] = []
-    for option in ("input", "mask", "calibration", "scale_file", "background_mask", "video_origin"):
-        values = getattr(args, option, None)
-        for value in values if isinstance(values, list) else [values]:
-            if isinstance(value, str) and value and Path(value).exists():
-                found.append(("the video" if option == "input" else "--" + option.replace("_", "-"), Path(value)))
-    found += [("a part", Path(part)) for part in getattr(args, "parts", None) or []]
-    if isinstance(getattr(args, "input", None), str):  # a camera header's frames file (.mraw)
-        found += [("the recording's frames", path) for path in companion_files(args.input)]
-    return found
-
-
-def _write_outputs(args: argparse.Namespace, tracks: Any, run: dict[str, Any], notes: list[str],
-                   mm_per_px: float, scale_source: str, started: float) -> list[tuple[int, Any]]:
-    """Filter, average and write the run's outputs as one all-or-nothing set; returns each
-    region's ``(label, Measurement)`` (none without --out).
-
-    Every file is written to a temporary name; only when all are complete are they
-    renamed (the CSV last), so a failure or Ctrl-C leaves none of them. A run of several
-    regions filters and averages each on its own and writes one row per frame and region.
-    """
-    from flow import formats, quality, storage
-
-    raw = getattr(args, "raw_tracks", None)
-    sparse = run["method_kind"] == "sparse"
-    multi = tracks.region is not None
-    results: list[tuple[int, Any]] = []
-    sidecar: dict[str, Any] = {}
-    columns = trackcsv.columns(regions=multi)
-    if args.out:
-        filter_mode = args.filter or ("none" if sparse else "paper")
-        results = [(label, quality.measure(tracks.select(label), filter_enabled=filter_mode != "none",
-                                           average="median" if filter_mode == "median" else "mean",
-                                           threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
-                                           # KLT mixes background and structure features by design (the
-                                           # paper's baseline): their disagreement is no sign of a blocked view
-                                           check_coherence=not sparse))
-                   for label in tracks.labels()]
-        sidecar = _sidecar(args, run, notes, results, mm_per_px, scale_source, filter_mode, columns, started)
-    sidecar_text = json_text(sidecar) if args.out else ""  # a bad value fails before any file exists
-    with atomic_paths(*_output_names(args)) as temporaries:
-        pending = list(temporaries)
-        if raw:
-            formats.save_raw_tracks(pending.pop(0), tracks, {**run, "notes": notes, "versions": versions()})
-        if args.save_poi_tracks:
-            roi = run["roi"]
-            kept = np.zeros(len(tracks.x_px), bool)
-            mcr = np.full(len(tracks.x_px), np.nan)
-            for label, result in results:
-                where = slice(None) if not multi else tracks.region == label
-                kept[where] = result.filtered.kept
-                mcr[where] = result.filtered.mcr
-            valid = np.column_stack([result.valid for _, result in results])
-            storage.write_npz(pending.pop(0), {
-                "frame": tracks.frame, "time_s": tracks.time_s, "dx_px": tracks.dx, "dy_px": tracks.dy,
-                "x_px": tracks.x_px + roi["x"], "y_px": tracks.y_px + roi["y"],
-                "valid": valid if multi else valid[:, 0], "kept": kept, "mcr": mcr, "residual": tracks.residual,
-                "offset_dx_px": tracks.offset_dx, "offset_dy_px": tracks.offset_dy,
-                **({"region": tracks.region} if multi else {})}, compress=True)
-        if args.out:
-            pending.pop(0).write_text(sidecar_text)
-            with pending.pop(0).open("w", newline="") as handle:
-                trackcsv.write(handle, [(label, formats.iter_rows(result, mm_per_px)) for label, result in results])
-    return results
-
-
-def _sidecar(args: argparse.Namespace, run: dict[str, Any], notes: list[str], results: list[tuple[int, Any]],
-             mm_per_px: float, scale_source: str, filter_mode: str, columns: list[str],
-             started: float) -> dict[str, Any]:
-    """The measurement's sidecar: the run, the scale, the filter and the quality (per region
-    under ``regions`` for a run of several)."""
-    multi = len(results) > 1
-
-    def quality(result: Any) -> dict[str, Any]:
-        n_valid = int(result.valid.sum())
-        return {"frames_valid": n_valid, "frames_invalid": int(len(result.valid) - n_valid),
-                "residual_threshold": _finite_or_none(result.residual_threshold),
-                "consistency_band_px": _finite_or_none(result.consistency_band_px)}
-
-    first = results[0][1]
-    every = np.logical_and.reduce([result.valid for _, result in results])
-    sidecar: dict[str, Any] = {
-        **{k: v for k, v in run.items() if k not in ("identity", "timings")},
-        "scale": {"mm_per_px": _finite_or_none(mm_per_px), "source": scale_source},
-        "filter": {"mode": filter_mode, "threshold_ratio": args.threshold_ratio,
-                   "threshold_px": None if multi else first.filtered.threshold_px,
-                   "mcr_threshold": args.mcr_threshold},
-        "quality": ({"frames_valid": int(every.sum()), "frames_invalid": int(len(every) - every.sum()),
-                     "counted": "frames valid in every region (each region's own: see regions)"}
-                    if multi else quality(first)),
-        "units": trackcsv.units(regions=multi),
-        "columns": columns,
-        "notes": notes + [(f"region {label}: {note}" if multi else note)
-                          for label, result in results for note in result.filtered.notes],
-        "versions": versions(),
-        "timings": {**run.get("timings", {}), "total_s": time.perf_counter() - started},
-    }
-    sidecar["poi"] = {**run["poi"], "kept_after_filter": sum(int(r.filtered.kept.sum()) for _, r in results),
-                      "kept_after_eq10": sum(int(r.filtered.kept_threshold.sum()) for _, r in results)}
-    if multi:
-        described = {entry["label"]: entry for entry in run["poi"].get("regions", [])}
-        sidecar["regions"] = [
-            {**described.get(label, {"label": label}), "threshold_px": result.filtered.threshold_px,
-             "kept_after_filter": int(result.filtered.kept.sum()),
-             "kept_after_eq10": int(result.filtered.kept_threshold.sum()), **quality(result)}
-            for label, result in results]
-    return sidecar
-
-
-def _calibration_summary(args: argparse.Namespace, calibration: dict[str, Any] | None) -> dict[str, Any] | None:
-    if calibration is None:
-        return None
-    return {"file": str(args.calibration), "rms_px": calibration.get("rms_px"),
-            "camera_matrix": calibration["camera_matrix"], "dist_coeffs": calibration["dist_coeffs"],
-            "video_origin": list(_video_origin(args))}
-
-
-def available_cores() -> int:
-    """Cores this process may run on (its CPU affinity where the system tells it)."""
-    try:
-        return max(len(os.sched_getaffinity(0)), 1)
-    except (AttributeError, OSError):
-        return max(os.cpu_count() or 1, 1)
+def merge_options(args: argparse.Namespace) -> MergeOptions:
+    return MergeOptions(parts=tuple(args.parts), scale=scale_options(args), filter=filter_options(args),
+                        outputs=OutputOptions(csv=args.out, poi_tracks=args.save_poi_tracks))
 
 
 def cmd_track(args: argparse.Namespace) -> int:
-    from flow import driver, poi
+    outcome = pipeline.track(track_options(args))
+    tracks = outcome.tracks
+    print(f"refflow track: {outcome.method}: {len(tracks.frame)} frames, {len(tracks.x_px)} POIs"
+          f"{_counts(outcome.results)} -> {', '.join(outcome.written)}", file=sys.stderr)
+    return 0
 
-    started = time.perf_counter()
-    notes: list[str] = []
-    name = args.method
-    if name is None:
-        name, note = _default_method()
-        if note:
-            notes.append(note)
-            print(f"refflow track: note: {note}", file=sys.stderr)
-    if name not in registry.available():
-        raise InputError(f"unknown method {name!r}; available: {', '.join(registry.available())} "
-                         "(see `refflow methods`)")
-    _check_scale_options(args)
-    _check_measure_options(args)
-    _positive("--fps", args.fps, "the camera frame rate in frames per second")
-    if args.max_frames is not None and args.max_frames < 1:
-        raise InputError(f"--max-frames {args.max_frames} must be >= 1")
-    if args.jobs is not None and args.jobs < 1:
-        raise InputError(f"--jobs {args.jobs} must be >= 1")
-    cores = available_cores()
-    if args.jobs is not None and args.jobs > cores:
-        # More jobs than cores only builds more method instances (memory) for no speed.
-        note = f"--jobs {args.jobs} is more than the {cores} cores this process may use: {cores} jobs"
-        notes.append(note)
-        print(f"refflow track: note: {note}", file=sys.stderr)
-    args.jobs = min(args.jobs or cores, cores)
-    if not args.out and not args.raw_tracks:
-        raise InputError("nothing to write: pass --out CSV (measurement) and/or --raw-tracks NPZ (unfiltered part)")
-    if args.save_poi_tracks and not args.out:
-        raise InputError("--save-poi-tracks records the filtered measurement: pass --out CSV too "
-                         "(--raw-tracks alone keeps the unfiltered tracks)")
-    frames = _parse_frames(args.frames)
-    params = _method_params(args, name)
-    method = _build_method(name, params)
-    sparse = getattr(method, "kind", "dense") == "sparse"
-    if sparse and frames is not None:
-        raise InputError(f"--frames needs a reference-frame (dense) method: {name} follows its features "
-                         "from frame to frame, so its run cannot be split")
-    if sparse and (args.background_mask or args.background_rect):
-        raise InputError(f"--background-mask/--background-rect need a dense method: {name} picks its own "
-                         "features (the paper's KLT baseline has no camera-motion compensation)")
-    _output_names(args)
-    source = _open(args)
-    undistort, calibration = _undistorter(args, source)
-    calibration_info = _calibration_summary(args, calibration)
-    mm_per_px, scale_source = _scale(args, calibration_info, tuple(source.size))
-    labels = _mask_for(args, source, undistort)
-    mask = labels > 0
-    outside = _mask_cut_by_roi(args, source, notes)
-    poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
-    regions = _regions(labels, poi_xy, args.grid_step)
-    if sparse and len(regions) > 1:
-        raise InputError(f"the mask has {len(regions)} regions but {name} picks its own features in one region: "
-                         "use a dense method (the default) or one region per run")
-    background = _background_for(args, source, undistort, mask)
-    # The per-POI store goes beside the output: a real disk, unlike a memory-backed /tmp.
-    store_dir = Path(args.out or args.raw_tracks).resolve().parent
-    store_dir = store_dir if store_dir.is_dir() else None
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        if sparse:
-            tracks = driver.track_sparse(source, method, mask, reference_frame=args.reference_frame,
-                                         reference_average=args.reference_average,
-                                         max_frames=args.max_frames, undistort=undistort,
-                                         progress=not args.no_progress, store_dir=store_dir)
-        else:
-            tracks = driver.track_dense(source, lambda: _build_method(name, params), poi_xy,
-                                        reference_frame=args.reference_frame,
-                                        reference_average=args.reference_average, jobs=args.jobs,
-                                        max_frames=args.max_frames, frames=frames, undistort=undistort,
-                                        progress=not args.no_progress, store_dir=store_dir,
-                                        background=background, mask=labels)
-    notes.extend(source.notes)
-    for warning in caught:
-        notes.append(str(warning.message))
-        print(f"refflow track: warning: {warning.message}", file=sys.stderr)
-    if scale_source.startswith("none"):
-        notes.append("no scale given: pass --mm-per-px or --known-length/--between for mm")
-    if source.bit_depth > 8 and not method.full_depth:
-        notes.append(f"{name} takes 8-bit images: the {source.bit_depth}-bit data was rounded to 8 bits for it "
-                     "(the default method measures at full depth)")
-    roi = source.roi
-    # Where the points are (full-frame pixels; undistorted with a calibration): a measurement
-    # point's position, e.g. for mode shapes (`refflow modal`).
-    def centroid(x_px: np.ndarray, y_px: np.ndarray) -> list[float]:
-        return [round(float(np.mean(x_px)) + roi.x, 3), round(float(np.mean(y_px)) + roi.y, 3)]
-
-    poi_info = {"count": int(len(tracks.x_px)), "source": "features" if sparse else "mask",
-                "mask_pixels": int(mask.sum()), "mask_pixels_outside_roi": outside, "grid_step": args.grid_step,
-                "centroid_px": centroid(tracks.x_px, tracks.y_px)}
-    if tracks.region is not None:
-        poi_info["regions"] = [
-            {"label": label, "count": int(np.sum(tracks.region == label)),
-             "mask_pixels": int(np.sum(labels == label)),
-             "centroid_px": centroid(tracks.x_px[tracks.region == label], tracks.y_px[tracks.region == label])}
-            for label in tracks.labels()]
-    background_info = None if background is None else {
-        "source": args.background_mask or f"rect {args.background_rect}", "points": int(len(background.xy)),
-        "model": background.model, "requested_model": args.background_model}
-    run = {
-        "tool": "refflow track",
-        "input": {"path": str(args.input), "frame_size": list(source.size), "fps": _finite_or_none(source.fps),
-                  "rotation_deg": source.rotation_deg, "bit_depth": source.bit_depth,
-                  "measured_bits": source.bit_depth if method.full_depth else min(source.bit_depth, 8),
-                  "header_frames": tracks.header_frames, "frames_decoded": source.frames_read,
-                  "frames_measured": len(tracks.frame), "truncated": tracks.truncated},
-        "frames": {"first": int(tracks.frame[0]), "stop": int(tracks.frame[-1]) + 1, "requested": args.frames},
-        "method": name, "method_kind": "sparse" if sparse else "dense", "parameters": method.params(),
-        "reference_frame": args.reference_frame, "reference_average": args.reference_average,
-        "jobs": args.jobs if not sparse else 1,
-        "roi": roi.as_dict(), "calibration": calibration_info, "poi": poi_info,
-        "background": background_info,
-        "timings": tracks.timings_s,
-        # What every part of one run shares; `refflow merge` refuses parts that differ.
-        "identity": {"method": name, "parameters": method.params(), "reference_frame": args.reference_frame,
-                     "reference_average": args.reference_average,
-                     "reference_digest": tracks.reference_digest, "roi": roi.as_dict(),
-                     "frame_size": list(source.size), "header_frames": tracks.header_frames,
-                     "calibration": calibration_info, "poi": poi_info, "background": background_info},
-    }
-    results = _write_outputs(args, tracks, run, notes, mm_per_px, scale_source, started)
-    written = [p for p in (args.raw_tracks, args.out) if p]
-    print(f"refflow track: {name}: {len(tracks.frame)} frames, {len(tracks.x_px)} POIs{_counts(results)} -> "
-          f"{', '.join(written)}", file=sys.stderr)
+def cmd_merge(args: argparse.Namespace) -> int:
+    n_parts, outcome = pipeline.merge(merge_options(args))
+    print(f"refflow merge: {n_parts} parts, {len(outcome.tracks.frame)} frames, {len(outcome.tracks.x_px)} POIs"
+          f"{_counts(outcome.results)} -> {args.out}", file=sys.stderr)
     return 0
 
 
@@ -614,34 +112,13 @@ def _counts(results: list[tuple[int, Any]]) -> str:
                    for label, r in results)
 
 
-def cmd_merge(args: argparse.Namespace) -> int:
-    from flow import formats
-
-    started = time.perf_counter()
-    _check_scale_options(args)
-    _check_measure_options(args)
-    _output_names(args)
-    store_dir = Path(args.out).resolve().parent
-    tracks, metas = formats.load_raw_tracks(args.parts, store_dir=store_dir if store_dir.is_dir() else None)
-    first = metas[0]
-    # The parts were measured undistorted: the scale points are carried through the same
-    # calibration, exactly as `track` does (one code path, _scale).
-    mm_per_px, scale_source = _scale(args, first["calibration"], tuple(first["input"]["frame_size"]))
-    notes = [note for meta in metas for note in meta.get("notes", []) if "no scale given" not in note]
-    if scale_source.startswith("none"):
-        notes.append("no scale given: pass --mm-per-px or --known-length/--between for mm")
-    run = {**first, "tool": "refflow merge",
-           "input": {**first["input"], "frames_decoded": max(m["input"]["frames_decoded"] for m in metas),
-                     "frames_measured": len(tracks.frame), "truncated": tracks.truncated},
-           "frames": {"first": int(tracks.frame[0]), "stop": int(tracks.frame[-1]) + 1, "requested": None},
-           "parts": [{"file": str(p), "frames": [m["frames"]["first"], m["frames"]["stop"]]}
-                     for p, m in zip(args.parts, metas, strict=True)],
-           "timings": tracks.timings_s}
-    run.pop("notes", None)
-    run.pop("versions", None)
-    results = _write_outputs(args, tracks, run, notes, mm_per_px, scale_source, started)
-    print(f"refflow merge: {len(metas)} parts, {len(tracks.frame)} frames, {len(tracks.x_px)} POIs"
-          f"{_counts(results)} -> {args.out}", file=sys.stderr)
+def cmd_methods(args: argparse.Namespace) -> int:
+    width = max(len(n) for n in registry.available())
+    kinds = registry.kinds()
+    for name, summary in registry.describe().items():
+        print(f"{name:<{width}}  [{kinds[name]}]  {summary}")
+    for name, reason in registry.unavailable().items():
+        print(f"({name} unavailable: {reason})")
     return 0
 
 
@@ -659,18 +136,19 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_pois(args: argparse.Namespace) -> int:
-    from flow import poi
+    from flow import inputs, poi
     from flow.driver import read_reference
     from flow.figures import poi_figure
     from flow.methods.klt import KLT
 
-    source = _open(args, need_time=False)
-    undistort, _ = _undistorter(args, source)
-    labels = _mask_for(args, source, undistort)
+    source_given, region = source_options(args), region_options(args)
+    source = inputs.open_source(source_given, need_time=False)
+    undistort, _ = inputs.undistorter(source_given, source)
+    labels = inputs.poi_labels(region, source, undistort)
     mask = labels > 0
-    _mask_cut_by_roi(args, source, [])
+    inputs.mask_cut_by_roi(region, source, [], args.command)
     poi_xy = poi.poi_coordinates(mask, grid_step=args.grid_step)
-    regions = _regions(labels, poi_xy, args.grid_step)
+    regions = inputs.measured_regions(labels, poi_xy, args.grid_step)
     reference = read_reference(source, args.reference_frame, undistort, args.reference_average)
     corners = KLT(detector=args.detector).detect(reference)
     poi_figure(reference, poi_xy, corners, args.out,
@@ -690,7 +168,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     labels = args.label or []
     if labels and len(labels) != len(args.csv):
         raise InputError(f"--label given {len(labels)} times for {len(args.csv)} CSV files: one per file or none")
-    _positive("--min-hz", args.min_hz, "a frequency in Hz")
+    positive("--min-hz", args.min_hz, "a frequency in Hz")
     # Every region of every CSV is a series of its own.
     measured = [(i, path, data) for i, path in enumerate(args.csv) for data in read_measurements(path)]
     units = args.units
@@ -736,6 +214,7 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
                    help="the reference is the mean of N frames from --reference-frame, taken while the "
                         "structure is at rest (a key frame of a compressed video reads as a sub-pixel "
                         "shift against the frames that follow it; default 1: the frame itself)")
+
 
 def _add_measure_options(p: argparse.ArgumentParser, *, out_required: bool) -> None:
     p.add_argument("--out", required=out_required,

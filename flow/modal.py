@@ -88,25 +88,48 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
         Unreadable or too short CSVs, CSVs whose frame times differ, a bad option, an
         output that is an input or cannot be written. Nothing is written then.
     """
-    from refflow.modal import identify_with_diagnostics
-
     paths = [Path(p) for p in csv_paths]
     _check_options(paths, n_modes, band_hz, direction)
     figures = figure_paths(out_json, out_prefix)
     inputs = [(what, path) for csv_path in paths for what, path in (
         (f"the CSV {csv_path}", csv_path), (f"{csv_path}'s sidecar", csv_path.with_suffix(".json")))]
     check_outputs([*figures, Path(out_json)], inputs, option="--out or --figures")
-    # Every region of every CSV is a measurement point.
+    point_paths, measured, where = _read_points(paths)
+    units = "mm" if all(m["has_mm"] for m in measured) else "px"
+    record = _common_record(where, measured, units, direction)
+    modes, diagnostics = _identify(record, n_modes, band_hz)
+    regions = [data["region"] for data in measured]
+    result = _result(record, modes, diagnostics, _points(point_paths, regions, record), units=units,
+                     direction=direction, n_modes=n_modes)
+    backdrop, why_not = reference_backdrop(paths[0], result["points"])
+    pictures: list[Path] = []
+    if backdrop is None:
+        result["notes"].append(f"mode shapes not drawn over the video: {why_not}")
+    elif result["modes"]:
+        prefix = str(figures[0])[: -len(FIGURE_SUFFIXES[0])]
+        pictures = [Path(prefix + FRAME_SUFFIX)] + [Path(f"{prefix}_mode{m['mode']}.gif") for m in result["modes"]]
+        check_outputs(pictures, inputs, option="--out or --figures")
+    outputs = [*figures, *pictures, Path(out_json)]  # the JSON last: it is what other tools look for
+    _write(result, diagnostics, modes, backdrop, outputs, units=units, pictures=bool(pictures))
+    return {**result, "outputs": [str(p) for p in outputs]}
+
+
+def _read_points(paths: list[Path]) -> tuple[list[Path], list[dict[str, Any]], list[str]]:
+    """Every region of every CSV as a measurement point: its CSV, its measurement and how
+    messages name it; refuses points that do not share their frame times."""
     found = [(path, data) for path in paths for data in read_measurements(path)]
     point_paths = [path for path, _ in found]
     measured = [data for _, data in found]
-    regions = [data["region"] for data in measured]
-    where = [str(path) if region is None else f"{path} region {region}"
-             for path, region in zip(point_paths, regions, strict=True)]
+    where = [str(path) if data["region"] is None else f"{path} region {data['region']}" for path, data in found]
     _check_shared_times(where, measured)
-    units = "mm" if all(m["has_mm"] for m in measured) else "px"
-    names = _point_names(point_paths, regions)
-    record = _common_record(where, measured, units, direction)
+    return point_paths, measured, where
+
+
+def _identify(record: dict[str, Any], n_modes: int,
+              band_hz: tuple[float, float] | None) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The modes of the common record and the identification's diagnostics; notes a shortfall."""
+    from refflow.modal import identify_with_diagnostics
+
     rate_hz = record["rate_hz"]
     if band_hz is not None and band_hz[1] > 0.5 * rate_hz:
         raise InputError(f"--band {band_hz[0]:g},{band_hz[1]:g}: {band_hz[1]:g} Hz is above the Nyquist "
@@ -119,12 +142,13 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
         samples, seconds = record["series"].shape[1], record["series"].shape[1] / rate_hz
         raise InputError(f"modal identification of the common record ({samples} samples, {seconds:.3g} s) "
                          f"failed: {err}: measure a longer record or widen --band") from None
-    notes = list(record["notes"])
-    if len(modes) < n_modes:
-        notes.append(f"found {len(modes)} of the {n_modes} modes asked for: the FDD curve has only "
-                     f"{len(modes)} prominent peak(s) in {diagnostics['band_hz'][0]:g}-"
-                     f"{diagnostics['band_hz'][1]:g} Hz (see the stabilisation diagram)")
+    return modes, diagnostics
+
+
+def _points(point_paths: list[Path], regions: list[int | None], record: dict[str, Any]) -> list[dict[str, Any]]:
+    """The JSON's ``points``: name, CSV, direction, frames bridged, region and position where known."""
     points = []
+    names = _point_names(point_paths, regions)
     for i, (path, region, name) in enumerate(zip(point_paths, regions, names, strict=True)):
         point: dict[str, Any] = {"name": name, "csv": str(path), "direction_px": record["directions"][i],
                                  "frames_bridged": record["bridged"][i]}
@@ -134,7 +158,19 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
         if position is not None:
             point["position_px"] = position
         points.append(point)
-    result: dict[str, Any] = {
+    return points
+
+
+def _result(record: dict[str, Any], modes: list[dict[str, Any]], diagnostics: dict[str, Any],
+            points: list[dict[str, Any]], *, units: str, direction: str, n_modes: int) -> dict[str, Any]:
+    """What the modes JSON holds (``docs/formats.md``)."""
+    rate_hz = record["rate_hz"]
+    notes = list(record["notes"])
+    if len(modes) < n_modes:
+        notes.append(f"found {len(modes)} of the {n_modes} modes asked for: the FDD curve has only "
+                     f"{len(modes)} prominent peak(s) in {diagnostics['band_hz'][0]:g}-"
+                     f"{diagnostics['band_hz'][1]:g} Hz (see the stabilisation diagram)")
+    return {
         "tool": "refflow modal",
         "method": "FDD peaks + SSI-cov (median over model orders), refflow.modal.identify",
         "points": points,
@@ -154,15 +190,11 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
         "notes": notes,
         "versions": versions(),
     }
-    backdrop, why_not = reference_backdrop(paths[0], points)
-    pictures: list[Path] = []
-    if backdrop is None:
-        notes.append(f"mode shapes not drawn over the video: {why_not}")
-    elif result["modes"]:
-        prefix = str(figures[0])[: -len(FIGURE_SUFFIXES[0])]
-        pictures = [Path(prefix + FRAME_SUFFIX)] + [Path(f"{prefix}_mode{m['mode']}.gif") for m in result["modes"]]
-        check_outputs(pictures, inputs, option="--out or --figures")
-    outputs = [*figures, *pictures, Path(out_json)]  # the JSON last: it is what other tools look for
+
+
+def _write(result: dict[str, Any], diagnostics: dict[str, Any], modes: list[dict[str, Any]], backdrop: Any,
+           outputs: list[Path], *, units: str, pictures: bool) -> None:
+    """The figures, the pictures over the video (where ``pictures``) and the JSON, all or nothing."""
     text = json_text(result)  # a bad value fails before any file exists
     with atomic_paths(*outputs) as written:
         stabilisation_figure(diagnostics, modes, written[0], units=units)
@@ -172,7 +204,6 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
             for mode, gif in zip(result["modes"], written[3:-1], strict=True):
                 mode_animation(result, mode, backdrop, gif)
         written[-1].write_text(text)
-    return {**result, "outputs": [str(p) for p in outputs]}
 
 
 def _check_options(paths: list[Path], n_modes: int, band_hz: tuple[float, float] | None, direction: str) -> None:

@@ -223,9 +223,9 @@ class App:
             except InputError as err:
                 print(f"refflow gui: note: {err} (not loaded)", file=sys.stderr)
         try:
-            from flow.cli import _default_method  # what `track` runs without --method
+            from flow.pipeline import default_method  # what `track` runs without --method
 
-            default = _default_method()[0]
+            default = default_method()[0]
         except (ImportError, AttributeError):  # pragma: no cover - the CLI is part of the package
             default = "deepflow" if "deepflow" in kinds else next(iter(kinds))
         source = self.source

@@ -1,0 +1,142 @@
+"""A run's outputs as one all-or-nothing set: the raw-tracks part, the per-POI tracks, the
+sidecar and the CSV, each region filtered and averaged on its own.
+
+Every file is written to a temporary name; only when all are complete are they renamed (the
+CSV last), so a failure or Ctrl-C leaves none of them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flow.options import FilterOptions, OutputOptions, RunInfo
+from flow.outputs import check_outputs
+from flow.scale import Scale
+from refflow import trackcsv
+from refflow.io import atomic_paths, json_text, versions
+
+
+def finite_or_none(value: float | None) -> float | None:
+    return value if value is not None and math.isfinite(value) else None
+
+
+def output_names(outputs: OutputOptions, inputs: list[tuple[str, Path]]) -> list[Path]:
+    """The files a run writes, in writing order (the CSV last); checked before any work."""
+    names = outputs.paths()
+    check_outputs(names, inputs, option="--out (the sidecar is <out>.json)")
+    return names
+
+
+def measure_regions(tracks: Any, filtering: FilterOptions, sparse: bool) -> tuple[str, list[tuple[int, Any]]]:
+    """The filter mode used and each region's ``(label, Measurement)``."""
+    from flow import quality
+
+    mode = filtering.mode or ("none" if sparse else "paper")
+    results = [(label, quality.measure(tracks.select(label), filter_enabled=mode != "none",
+                                       average="median" if mode == "median" else "mean",
+                                       threshold_ratio=filtering.threshold_ratio,
+                                       mcr_threshold=filtering.mcr_threshold,
+                                       # KLT mixes background and structure features by design (the
+                                       # paper's baseline): their disagreement is no sign of a blocked view
+                                       check_coherence=not sparse))
+               for label in tracks.labels()]
+    return mode, results
+
+
+def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list[tuple[str, Path]],
+                  tracks: Any, run: RunInfo, notes: list[str], scale: Scale,
+                  started: float) -> list[tuple[int, Any]]:
+    """Filter, average and write the run's outputs as one all-or-nothing set; returns each
+    region's ``(label, Measurement)`` (none without a CSV).
+
+    A run of several regions filters and averages each on its own and writes one row per
+    frame and region.
+    """
+    from flow import formats
+
+    results: list[tuple[int, Any]] = []
+    sidecar_text = ""
+    if outputs.csv:
+        mode, results = measure_regions(tracks, filtering, run.method_kind == "sparse")
+        columns = trackcsv.columns(regions=tracks.region is not None)
+        # Serialised first: a bad value fails before any file exists.
+        sidecar_text = json_text(sidecar(run, filtering, notes, results, scale, mode, columns, started))
+    with atomic_paths(*output_names(outputs, inputs)) as temporaries:
+        pending = list(temporaries)
+        if outputs.raw_tracks:
+            formats.save_raw_tracks(pending.pop(0), tracks, run.part_meta(notes))
+        if outputs.poi_tracks:
+            _write_poi_tracks(pending.pop(0), tracks, results, run.roi)
+        if outputs.csv:
+            pending.pop(0).write_text(sidecar_text)
+            with pending.pop(0).open("w", newline="") as handle:
+                trackcsv.write(handle, [(label, formats.iter_rows(result, scale.mm_per_px))
+                                        for label, result in results])
+    return results
+
+
+def _write_poi_tracks(path: Path, tracks: Any, results: list[tuple[int, Any]], roi: dict[str, int]) -> None:
+    """The per-POI displacements with each POI's filter verdict (``--save-poi-tracks``)."""
+    from flow import storage
+
+    multi = tracks.region is not None
+    kept = np.zeros(len(tracks.x_px), bool)
+    mcr = np.full(len(tracks.x_px), np.nan)
+    for label, result in results:
+        where = slice(None) if not multi else tracks.region == label
+        kept[where] = result.filtered.kept
+        mcr[where] = result.filtered.mcr
+    valid = np.column_stack([result.valid for _, result in results])
+    storage.write_npz(path, {
+        "frame": tracks.frame, "time_s": tracks.time_s, "dx_px": tracks.dx, "dy_px": tracks.dy,
+        "x_px": tracks.x_px + roi["x"], "y_px": tracks.y_px + roi["y"],
+        "valid": valid if multi else valid[:, 0], "kept": kept, "mcr": mcr, "residual": tracks.residual,
+        "offset_dx_px": tracks.offset_dx, "offset_dy_px": tracks.offset_dy,
+        **({"region": tracks.region} if multi else {})}, compress=True)
+
+
+def _quality(result: Any) -> dict[str, Any]:
+    n_valid = int(result.valid.sum())
+    return {"frames_valid": n_valid, "frames_invalid": int(len(result.valid) - n_valid),
+            "residual_threshold": finite_or_none(result.residual_threshold),
+            "consistency_band_px": finite_or_none(result.consistency_band_px)}
+
+
+def sidecar(run: RunInfo, filtering: FilterOptions, notes: list[str], results: list[tuple[int, Any]],
+            scale: Scale, filter_mode: str, columns: list[str], started: float) -> dict[str, Any]:
+    """The measurement's sidecar: the run, the scale, the filter and the quality (per region
+    under ``regions`` for a run of several)."""
+    multi = len(results) > 1
+    first = results[0][1]
+    every = np.logical_and.reduce([result.valid for _, result in results])
+    data: dict[str, Any] = {
+        **run.record(),
+        "scale": {"mm_per_px": finite_or_none(scale.mm_per_px), "source": scale.source},
+        "filter": {"mode": filter_mode, "threshold_ratio": filtering.threshold_ratio,
+                   "threshold_px": None if multi else first.filtered.threshold_px,
+                   "mcr_threshold": filtering.mcr_threshold},
+        "quality": ({"frames_valid": int(every.sum()), "frames_invalid": int(len(every) - every.sum()),
+                     "counted": "frames valid in every region (each region's own: see regions)"}
+                    if multi else _quality(first)),
+        "units": trackcsv.units(regions=multi),
+        "columns": columns,
+        "notes": notes + [(f"region {label}: {note}" if multi else note)
+                          for label, result in results for note in result.filtered.notes],
+        "versions": versions(),
+        "timings": {**run.timings, "total_s": time.perf_counter() - started},
+    }
+    data["poi"] = {**run.poi, "kept_after_filter": sum(int(r.filtered.kept.sum()) for _, r in results),
+                   "kept_after_eq10": sum(int(r.filtered.kept_threshold.sum()) for _, r in results)}
+    if multi:
+        described = {entry["label"]: entry for entry in run.poi.get("regions", [])}
+        data["regions"] = [
+            {**described.get(label, {"label": label}), "threshold_px": result.filtered.threshold_px,
+             "kept_after_filter": int(result.filtered.kept.sum()),
+             "kept_after_eq10": int(result.filtered.kept_threshold.sum()), **_quality(result)}
+            for label, result in results]
+    return data
