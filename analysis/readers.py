@@ -8,7 +8,6 @@ that into exit code 2).
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import re
@@ -19,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from refflow import trackcsv
+from refflow.csvtable import read_rows
 
 SENSOR_COLUMNS = ("time_s", "dx_mm")
 TRUTH_COLUMNS = ("frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "occluded")
@@ -47,19 +47,7 @@ def read_csv_columns(path: str | os.PathLike[str], required: tuple[str, ...],
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
-    with path.open(newline="") as handle:
-        reader = csv.reader(handle)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise ValueError(f"{path}: empty file, expected header {','.join(required)}") from None
-        rows = [row for row in reader if row and any(cell.strip() for cell in row)]
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}; "
-                         f"found {','.join(header)}")
-    if not rows:
-        raise ValueError(f"{path}: no data rows")
+    header, rows = read_rows(path, required)
     columns: dict[str, np.ndarray] = {}
     for j, name in enumerate(header):
         values = np.empty(len(rows))

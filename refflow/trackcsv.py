@@ -14,6 +14,8 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from refflow.csvtable import read_rows
+
 # The columns in the file's order, each with the unit and meaning the sidecar's ``units``
 # gives it (None: the sidecar gives none).
 COLUMNS: dict[str, str | None] = {
@@ -96,16 +98,8 @@ def read(path: str | os.PathLike[str]) -> dict[int | None, dict[str, np.ndarray]
     path = Path(path)
     if not path.is_file():
         raise TrackCsvError(f"{path}: does not exist: pass the --out CSV of `refflow track`")
-    with path.open(newline="") as handle:
-        reader = csv.reader(handle)
-        header = [name.strip() for name in next(reader, [])]
-        rows = [row for row in reader if any(cell.strip() for cell in row)]
-    missing = [name for name in REQUIRED if name not in header]
-    if missing:
-        raise TrackCsvError(f"{path}: not a `refflow track` CSV: no {', '.join(missing)} column "
-                            f"(found {','.join(header) or 'no header'})")
-    if not rows:
-        raise TrackCsvError(f"{path}: no data rows")
+    header, rows = read_rows(path, REQUIRED, error=TrackCsvError, describe_missing=lambda missing, found: (
+        f"not a `refflow track` CSV: no {', '.join(missing)} column (found {','.join(found) or 'no header'})"))
     cells = {name: [row[j].strip() if j < len(row) else "" for row in rows] for j, name in enumerate(header)}
     found = {name: _numbers(path, name, values) for name, values in cells.items() if name != REGION}
     for name in _ALWAYS_FINITE:

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -17,6 +15,9 @@ from flow.io import FrameSource
 from flow.methods.base import CROP_MARGIN_PX
 from flow.methods.klt import KLT
 from flow.quality import measure
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _fresh_python import run_fresh  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -69,10 +70,7 @@ def test_registry_says_why_a_method_is_unavailable() -> None:
             "with contextlib.redirect_stdout(out):\n    cli.main(['methods'])\n"
             "print(json.dumps([registry.available(), registry.unavailable(),"
             " cli._default_method(), out.getvalue()]))\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
-                         env=env, timeout=120)
+    run = run_fresh(code)
     assert run.returncode == 0, run.stderr
     names, missing, (default, note), listing = json.loads(run.stdout.splitlines()[-1])
     assert {"deepflow", "deepflow-dense", "deepmatching"} <= set(missing)

@@ -16,6 +16,9 @@ import yaml
 from refflow.config import deep_merge, load_config
 from refflow.io import atomic_path, config_hash, source_digest, write_json
 
+sys.path.insert(0, str(Path(__file__).parent))
+from _fresh_python import run_fresh  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[2]
 
 # package -> packages it must never import (STYLE.md "three boundaries")
@@ -151,10 +154,7 @@ def test_registry_and_methods_import_in_any_order(order):
     code = ("import importlib\n"
             f"for name in {order!r}:\n    importlib.import_module(name)\n"
             "from flow import registry\nprint(','.join(registry.available()))\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
-                         env=env, timeout=120)
+    run = run_fresh(code)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == [",".join(registry.available())]
 
