@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         config = load_config(args.config) if args.config else {}
         if args.command == "regions":
-            from sim.render import write_regions
+            from sim.masks import write_regions
             info = write_regions(config, args.out)
             spans = ", ".join(f"{h:g} mm: rows {a}-{b}" for h, (a, b) in zip(info["heights_mm"], info["rows"], strict=True))
             print(f"{args.out}: {len(info['heights_mm'])} regions ({spans})")

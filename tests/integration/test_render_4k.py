@@ -70,7 +70,7 @@ def test_crop_equals_full_4k_frame(tmp_path):
     full = BeamRenderer(cfg, shapes, full_frame=True)
     crop = BeamRenderer(cfg, shapes)
     try:
-        c = crop.window
+        c = crop.view.window
         gains = full.gains(16)
         assert np.array_equal(gains, crop.gains(16))
         for frame in (1, 5, 15):
