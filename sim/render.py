@@ -8,7 +8,7 @@ averages undistorted pyrender renders at the sub-frames of its exposure with eac
 row's weights (:class:`sim.camera.SubframeSampling`), remaps them through the exact lens
 model and scales each row by the light's relative intensity over its exposure;
 :meth:`BeamRenderer.frame` adds the sensor (noise, the auto-exposure's analog gain, gamma,
-8 bits; ``sim.camera``).
+8 bits; ``sim.camera``). The clip and its files are ``sim.clip``'s.
 
 Speed: while the camera stands still and the sheet is away only the beam and
 its logo move, so the window's background is rendered once and a sub-frame
@@ -26,29 +26,17 @@ meters into gains with a phone-like lag.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from sim.camera import (
-    AutoExposure,
-    CameraConfig,
-    CameraModel,
-    SubframeSampling,
-    Window,
-    sensor_readout,
-    srgb8_to_linear16,
-)
-from sim.codec import CodecConfig, VideoWriter, ffmpeg_version
-from sim.masks import Pois, background_mask, poi_mask
+from sim.camera import AutoExposure, SubframeSampling, Window, sensor_readout, srgb8_to_linear16
+from sim.masks import Pois, poi_mask
 from sim.occlusion import OcclusionConfig
 from sim.scene import (
     BeamMesh,
     BeamShapes,
-    SceneConfig,
     build_static_scene,
     offscreen_renderer,
     pyrender,
@@ -56,9 +44,8 @@ from sim.scene import (
     release_renderer,
 )
 from sim.subframes import SubframeTable
-from sim.truth import TRUTH_CONVENTION, GroundTruth
-from sim.truth_io import CSV_COLUMNS, TruthWriter
-from sim.view import View, config_seed
+from sim.truth import GroundTruth
+from sim.view import View
 
 RENDER_FLAGS = pyrender.RenderFlags.FLAT  # baked lighting, see sim.scene.shading
 _AWAY = np.eye(4)
@@ -271,271 +258,3 @@ class BeamRenderer:
 
     def close(self) -> None:
         release_renderer(self.renderer)
-
-
-# ----------------------------------------------------------------- clips
-def clip_metadata(renderer: BeamRenderer) -> dict[str, Any]:
-    """The description of a clip's camera, truth and disturbances in its ``render.json``."""
-    view = renderer.view
-    cam, cc = view.camera, view.cam_cfg
-    return {
-        "mm_per_px": view.mm_per_px, "fps": cc.fps, "crop": view.window.as_dict(),
-        "sensor": {"width": cam.width, "height": cam.height},
-        "intrinsics": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
-                       "K": cam.K.tolist()},
-        "distortion": {"k1": cam.k1, "k2": cam.k2, "p1": cam.p1, "p2": cam.p2,
-                       "model": "Brown-Conrady, OpenCV order (k1, k2, p1, p2, k3=0)"},
-        "camera_start_offset_s": cc.start_offset_s,
-        "camera_position_mm": [0.0, cam.camera_y_mm, cam.aim_z_mm],
-        "camera_looks_along": "+y (world x = image right, world z = image up)",
-        "measurement_point_mm": view.measure_point.tolist(),
-        "measurement_point_px": view.measure_px.tolist(),
-        "exposure_s": cc.exposure_s,
-        "rolling_shutter_s": cc.rolling_shutter_s,
-        "subframes": {"camera": cc.motion_blur_subframes,
-                      "sheet_moving": view.occ_cfg.motion_blur_subframes,
-                      "rule": "bins of exposure/n on a grid shared by all rows, rendered at "
-                              "their centres; a row weighs each bin by its exposure overlap"},
-        "truth_columns": list(CSV_COLUMNS),
-        "truth_convention": TRUTH_CONVENTION,
-        "disturbances": {"camera_shake": cc.shake, "camera_drift": cc.drift,
-                         "flicker": view.scene_cfg.flicker, "clouds": view.scene_cfg.clouds,
-                         "light_drift": view.scene_cfg.light_drift},
-        "distractors_mm": ([] if renderer.distractors is None
-                           else renderer.distractors[0].tolist()),
-        "config": {"camera": asdict(cc), "scene": asdict(view.scene_cfg),
-                   "occlusion": asdict(view.occ_cfg)},
-    }
-
-
-def render_clip(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path, *,
-                full_frame: bool = False, max_frames: int | None = None,
-                progress: bool = True) -> dict[str, Any]:
-    """Render the video and its ground truth into ``out_dir`` (see docs/formats.md).
-
-    Frames go straight to the encoder and the truth to its files frame by
-    frame (``sim.truth_io``): memory does not grow with the clip's length.
-    """
-    from refflow.io import atomic_paths, config_hash, json_text, versions, write_json
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    codec = CodecConfig.from_config(config)
-    t_start = time.perf_counter()
-    r = BeamRenderer(config, shapes, full_frame=full_frame)
-    view = r.view
-    try:
-        n = view.n_frames()
-        if max_frames is not None:
-            n = min(n, int(max_frames))
-        w = view.window
-        video = out_dir / f"video{codec.suffix}"
-        ae = AutoExposure(view.cam_cfg)
-        spent = {"meter_s": 0.0, "truth_s": 0.0}
-        frame_times = []
-        outputs = (video, out_dir / "mask.png", out_dir / "background.png", out_dir / "scale.json",
-                   out_dir / "recording.json", out_dir / "poi_truth.npz", out_dir / "truth.csv")
-        with atomic_paths(*outputs) as (tmp_video, tmp_mask, tmp_background, tmp_scale, tmp_recording,
-                                        tmp_npz, tmp_csv):
-            with VideoWriter(tmp_video, w.width, w.height, view.cam_cfg.fps, codec) as writer, \
-                    TruthWriter(tmp_csv, tmp_npz, poi_x_px=r.pois.window_px[:, 0],
-                                poi_y_px=r.pois.window_px[:, 1]) as truth_out:
-                it = range(n)
-                if progress:
-                    from tqdm import tqdm
-                    it = tqdm(it, desc=f"render {w.width}x{w.height}", unit="frame")
-                for i in it:
-                    t0 = time.perf_counter()
-                    gain = ae.step(r.meter(i))
-                    t1 = time.perf_counter()
-                    writer.write(r.frame(i, gain))
-                    t2 = time.perf_counter()
-                    truth_out.write(r.truth.frame(i), gain)
-                    spent["meter_s"] += t1 - t0
-                    spent["truth_s"] += time.perf_counter() - t2
-                    frame_times.append(t2 - t1)
-            cv2.imwrite(str(tmp_mask), r.mask)
-            cv2.imwrite(str(tmp_background), background_mask(view))
-            # the scale as the paper's user takes it (refflow track --scale-file reads it)
-            tmp_scale.write_text(json_text({
-                "known_length_mm": view.scene_cfg.beam_thickness_mm,
-                "between_px": [round(float(v), 4) for v in r.truth.scale_points()],
-                "what": "the beam's front-face edges at the measurement height on frame 0 (raw video "
-                        "pixels, exact); their distance is the beam thickness"}))
-            # what the recording itself tells: the video is this window of the sensor
-            # (refflow track --video-origin reads it to use the full-sensor calibration)
-            tmp_recording.write_text(json_text({
-                "video_origin_px": [w.x, w.y], "video_size_px": [w.width, w.height],
-                "sensor_size_px": [view.camera.width, view.camera.height], "fps": view.cam_cfg.fps}))
-        meta = clip_metadata(r)
-        ft = np.array(frame_times) if frame_times else np.zeros(1)
-        meta.update({
-            "video": video.name, "frames": n, "codec": asdict(codec),
-            "codec_bitrate_bps": codec.bitrate_bps(w.width, w.height, view.cam_cfg.fps),
-            "ffmpeg": ffmpeg_version(), "seed": view.seed, "config_hash": config_hash(config),
-            "versions": versions(), "n_pois": r.pois.count,
-            "timings": {**r.timings, **spent, "frames_s": float(ft.sum()),
-                        "frame_median_s": float(np.median(ft)),
-                        "fps_rendered": float(n / max(ft.sum(), 1e-9)),
-                        "total_s": time.perf_counter() - t_start},
-            "units": {"dx_px": "px", "dx_mm": "mm", "time_s": "s", "mm_per_px": "mm/px",
-                      "cam_dx_px": "px", "light_rel": "1", "gain": "1"},
-        })
-        write_json(out_dir / "render.json", meta)
-        return meta
-    finally:
-        r.close()
-
-
-# ----------------------------------------------------------------- calibration
-def checkerboard_texture(cols: int, rows: int, px_per_square: int = 64, border: int = 1):
-    """(rows+1) x (cols+1) squares -> cols x rows inner corners, white border."""
-    nx, ny = cols + 1, rows + 1
-    board = ((np.indices((ny, nx)).sum(0) % 2) * 255).astype(np.uint8)
-    board = np.kron(255 - board, np.ones((px_per_square, px_per_square), np.uint8))
-    b = border * px_per_square
-    board = np.pad(board, b, constant_values=255)
-    return np.repeat(board[..., None], 3, 2)
-
-
-def render_calibration(config: dict[str, Any], out_dir: str | Path, *, n_images: int = 15,
-                       cols: int = 9, rows: int = 6, square_mm: float = 40.0,
-                       progress: bool = True) -> dict[str, Any]:
-    """Checkerboard images through the same camera, lens and sensor as the video."""
-    from refflow.io import atomic_path, config_hash, versions, write_json
-    from sim.scene import material
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    seed = config_seed(config)
-    sc, cc = SceneConfig.from_config(config), CameraConfig.from_config(config)
-    cam = CameraModel(cc, camera_y_mm=-sc.beam_width_mm / 2 - cc.distance_mm)
-    plan = cam.remap_plan(cam.full_window())
-    scene = pyrender.Scene(ambient_light=np.full(3, 0.6), bg_color=(0.2, 0.2, 0.2, 1.0))
-    scene.add(pyrender.DirectionalLight(intensity=2.0), pose=cam.pose())
-    tex = checkerboard_texture(cols, rows)
-    bw, bh = (cols + 3) * square_mm, (rows + 3) * square_mm   # squares + white border
-    corners = np.array([[-bw / 2, 0, -bh / 2], [bw / 2, 0, -bh / 2], [bw / 2, 0, bh / 2],
-                        [-bw / 2, 0, bh / 2]])
-    board = scene.add(pyrender.Mesh([quad_primitive(corners, material(tex, 0.9))]))
-    fx, fy, cx, cy = cam.render_intrinsics(plan.render, 1)
-    scene.add(pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=20.0, zfar=20000.0), pose=cam.pose())
-    renderer = offscreen_renderer(plan.render.width, plan.render.height)
-    rng = np.random.default_rng([seed, 7])
-    images, poses = [], []
-    it = range(n_images)
-    if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc="calibration", unit="image")
-    try:
-        for i in it:
-            dist = rng.uniform(600, 1000)
-            half_w = 0.5 * cam.width / cam.fx * (dist) - bw / 2 * 0.8
-            half_h = 0.5 * cam.height / cam.fy * (dist) - bh / 2 * 0.8
-            x = rng.uniform(-half_w, half_w) if half_w > 0 else 0.0
-            z = rng.uniform(-half_h, half_h) if half_h > 0 else 0.0
-            rx, rz, ry = np.deg2rad(rng.uniform(-30, 30)), np.deg2rad(rng.uniform(-30, 30)), \
-                np.deg2rad(rng.uniform(-15, 15))
-            R = (cv2.Rodrigues(np.array([rx, 0, 0.0]))[0] @ cv2.Rodrigues(np.array([0, 0, rz]))[0]
-                 @ cv2.Rodrigues(np.array([0, ry, 0.0]))[0])
-            pose = np.eye(4)
-            pose[:3, :3] = R
-            pose[:3, 3] = (x, cam.camera_y_mm + dist, cam.aim_z_mm + z)
-            scene.set_pose(board, pose)
-            color = renderer.render(scene, flags=RENDER_FLAGS)[0]
-            lin = plan.apply(srgb8_to_linear16(color)).astype(np.float32) / 65535
-            img = sensor_readout(lin, 1.0, cc, seed=seed + 1000, frame=i, window=plan.window)
-            name = f"calib_{i:03d}.png"
-            with atomic_path(out_dir / name) as tmp:
-                cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-            images.append(name)
-            poses.append(pose.tolist())
-    finally:
-        release_renderer(renderer)
-    meta = {"images": images, "image_size": [cam.width, cam.height],
-            "camera_matrix": cam.K.tolist(), "dist_coeffs": cam.dist.tolist(),
-            "distortion": {"k1": cam.k1, "k2": cam.k2, "p1": cam.p1, "p2": cam.p2},
-            "board": {"inner_corners": [cols, rows], "square_mm": square_mm},
-            "board_poses_world": poses, "seed": seed, "config_hash": config_hash(config),
-            "versions": versions()}
-    write_json(out_dir / "calibration_truth.json", meta)
-    return meta
-
-
-# ----------------------------------------------------------------- figures
-def figure_frames(renderer: BeamRenderer, n_frames: int) -> dict[str, int]:
-    """Frames for the figures of a clip of ``n_frames``: ``motion``, where the
-    measurement point's displacement x speed peaks (the beam visibly bent *and*
-    moving: motion blur) among frames the sheet does not touch; ``occluded``,
-    the middle of the configured occlusion; ``occluding``, the frame of the
-    sheet's entry in which it covers the share of the crop nearest one half."""
-    view = renderer.view
-    cc, occ = view.cam_cfg, view.occ_cfg
-    mid = 0.5 * cc.exposure_s + float(view.camera.row_times(np.rint(view.measure_px[1])))
-    t = np.arange(n_frames) / cc.fps
-    x = np.array([renderer.truth.beam_points(ti + mid)[0][0] for ti in t])
-    speed = np.abs(np.gradient(x, t)) if n_frames > 1 else np.zeros(1)
-    sheet_free = np.array([not renderer.sheet.present_during(ti, ti + 1 / cc.fps) for ti in t])
-    score = np.where(sheet_free, np.abs(x - view.measure_point[0]) * speed, -1.0)
-    frames = {"motion": int(np.argmax(score))}
-    first, last = occ.start_s, occ.start_s + occ.duration_s
-    if occ.enabled and last <= (n_frames - 1) / cc.fps:
-        frames["occluded"] = int(np.floor(0.5 * (first + last) * cc.fps))
-        crop = view.crop_window
-        vv, uu = np.mgrid[crop.y:crop.y + crop.height:8, crop.x:crop.x + crop.width:8]
-        rays = view.camera.pixel_rays(uu.astype(float), vv.astype(float))
-        entry = np.arange(max(0, int((first - occ.transit_s) * cc.fps)), int(np.ceil(first * cc.fps)))
-        share = [renderer.sheet.covers(i / cc.fps + mid, *view.sheet_coords(rays)).mean()
-                 for i in entry]
-        if entry.size:
-            frames["occluding"] = int(entry[np.argmin(np.abs(np.array(share) - 0.5))])
-    return frames
-
-
-def render_figures(config: dict[str, Any], shapes: BeamShapes, out_dir: str | Path) -> list[Path]:
-    """render_full.png (4K, downscaled to 1920 wide) and render_crop.png at a frame of
-    motion, render_occluded.png (and render_occluding.png, the sheet's entry) with
-    the config's occlusion (switched on if the config has it off)."""
-    from refflow.io import atomic_path
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = []
-
-    def save(name, renderer, frame, box=None, size=None):
-        img = renderer.frame(frame, renderer.gains(frame + 1)[frame])
-        if box is not None:
-            img = img.copy()
-            cv2.rectangle(img, (box.x, box.y), (box.x + box.width, box.y + box.height),
-                          (255, 200, 0), 4)
-        if size is not None:
-            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-        with atomic_path(out_dir / name) as tmp:
-            cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        written.append(out_dir / name)
-
-    occ = asdict(OcclusionConfig.from_config(config))
-    occluding = {**config, "occlusion": {**occ, "enabled": True}}
-    crop = BeamRenderer(occluding, shapes)
-    try:
-        n = crop.view.n_frames()
-        frames = figure_frames(crop, n)
-        if "occluded" not in frames:
-            raise ValueError(f"the occlusion ({occ['start_s']} s + {occ['duration_s']} s) does "
-                             f"not fit the {n} frames the shapes allow: adjust occlusion.start_s "
-                             f"or pass longer shapes")
-        # the figures of the beam in motion show it without the sheet
-        clear = {**config, "occlusion": {**occ, "enabled": False}}
-        full = BeamRenderer(clear, shapes, full_frame=True)
-        try:
-            save("render_full.png", full, frames["motion"], box=full.view.crop_window, size=(1920, 1080))
-        finally:
-            full.close()
-        plain = BeamRenderer(clear, shapes)
-        try:
-            save("render_crop.png", plain, frames["motion"])
-        finally:
-            plain.close()
-        save("render_occluded.png", crop, frames["occluded"])
-        if "occluding" in frames:  # not declared by the workflow rule: an extra view
-            save("render_occluding.png", crop, frames["occluding"])
-    finally:
-        crop.close()
-    return written

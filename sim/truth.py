@@ -105,7 +105,7 @@ class GroundTruth:
 
     def stack(self, n_frames: int) -> dict[str, np.ndarray]:
         """Truth of frames 0..n_frames-1 stacked in memory (short clips and tests;
-        :func:`sim.render.render_clip` streams it frame by frame instead)."""
+        :func:`sim.clip.render_clip` streams it frame by frame instead)."""
         rows = [self.frame(i) for i in range(n_frames)]
         out = {key: np.array([row[key] for row in rows]) for key in rows[0]}
         out["poi_x_px"], out["poi_y_px"] = self.pois.window_px[:, 0], self.pois.window_px[:, 1]

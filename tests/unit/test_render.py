@@ -1,5 +1,5 @@
-"""Fast checks of the synthetic phone camera (sim.camera, sim.render, sim.occlusion,
-sim.disturbance, sim.truth_io)."""
+"""Fast checks of the synthetic phone camera (sim.camera, sim.view, sim.masks, sim.render,
+sim.truth, sim.clip, sim.figures, sim.occlusion, sim.disturbance, sim.truth_io)."""
 
 from __future__ import annotations
 
@@ -19,9 +19,11 @@ from sim.camera import (
     sensor_readout,
     srgb8_to_linear16,
 )
+from sim.clip import render_clip
+from sim.figures import figure_frames
 from sim.masks import face_rows, region_heights, regions_mask
 from sim.occlusion import OcclusionConfig
-from sim.render import BeamRenderer, figure_frames, render_clip
+from sim.render import BeamRenderer
 from sim.scene import (
     GEOMETRY,
     BeamMesh,
