@@ -60,18 +60,18 @@ def throughput(full_frame: bool, frames: int, runs: int) -> dict:
         split = {"whole_subframe_s": _seconds(lambda: r.render_undistorted(0.01)),
                  "remap_s": _seconds(lambda: r.plan.apply(und)),
                  "meter_s": _seconds(lambda: r.meter(1)),
-                 "truth_s": _seconds(lambda: r.truth_frame(1))}
+                 "truth_s": _seconds(lambda: r.truth.frame(1))}
         if r.strip is not None and r.strip[1] > r.strip[0]:
-            split["strip_subframe_s"] = _seconds(lambda: r._render_window(r._strip_window(), 0.01))
+            split["strip_subframe_s"] = _seconds(lambda: r.render_window(r.strip_window(), 0.01))
             split["strip_px"] = r.strip[1] - r.strip[0]
         lin = r.frame_linear(1)
-        split["sensor_s"] = _seconds(lambda: sensor_readout(lin, gains[1], r.cam_cfg, seed=0,
-                                                            frame=1, window=r.window))
+        split["sensor_s"] = _seconds(lambda: sensor_readout(lin, gains[1], r.view.cam_cfg, seed=0,
+                                                            frame=1, window=r.view.window))
     finally:
         r.close()
-    return {"size": f"{r.window.width}x{r.window.height}", "fps_median": float(np.median(rates)),
+    return {"size": f"{r.view.window.width}x{r.view.window.height}", "fps_median": float(np.median(rates)),
             "fps_runs": [round(x, 3) for x in rates], "setup_s": setup,
-            "subframes": r.cam_cfg.motion_blur_subframes, **split}
+            "subframes": r.view.cam_cfg.motion_blur_subframes, **split}
 
 
 def peak_memory(frames: int, tmp: Path) -> dict:

@@ -64,13 +64,13 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         config = load_config(args.config) if args.config else {}
         if args.command == "regions":
-            from sim.render import write_regions
+            from sim.masks import write_regions
             info = write_regions(config, args.out)
             spans = ", ".join(f"{h:g} mm: rows {a}-{b}" for h, (a, b) in zip(info["heights_mm"], info["rows"], strict=True))
             print(f"{args.out}: {len(info['heights_mm'])} regions ({spans})")
             return 0
         if args.command == "calibration":
-            from sim.render import render_calibration
+            from sim.calibration import render_calibration
             try:
                 cols, rows = (int(v) for v in args.board.lower().split("x"))
             except ValueError:
@@ -82,8 +82,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{len(meta['images'])} images in {args.out_dir}")
             return 0
         if args.command == "figures":
+            from sim.figures import render_figures
             from sim.occlusion import OcclusionConfig
-            from sim.render import render_figures
             occ = OcclusionConfig.from_config(config)
             # the analytic mode, long enough for the config's occlusion
             shapes = (BeamShapes.load(args.shapes) if args.shapes else BeamShapes(
@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("render needs --shapes SHAPES.npz and --out-dir DIR")
         if args.max_frames is not None and args.max_frames < 1:
             raise ValueError(f"--max-frames must be >= 1, got {args.max_frames}")
-        from sim.render import render_clip
+        from sim.clip import render_clip
         meta = render_clip(config, BeamShapes.load(args.shapes), args.out_dir,
                            full_frame=args.full_frame, max_frames=args.max_frames,
                            progress=not args.no_progress)

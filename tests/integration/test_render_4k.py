@@ -41,8 +41,8 @@ def test_cli_renders_h264_clip_with_occlusion(tmp_path):
 def test_calibration_images_match_true_corners(tmp_path):
     import cv2
 
+    from sim.calibration import render_calibration
     from sim.camera import CameraConfig, CameraModel
-    from sim.render import render_calibration
     meta = render_calibration({"seed": 3}, tmp_path, n_images=2, progress=False)
     cam = CameraModel(CameraConfig(), camera_y_mm=-1050.0)
     cols, rows = meta["board"]["inner_corners"]
@@ -70,7 +70,7 @@ def test_crop_equals_full_4k_frame(tmp_path):
     full = BeamRenderer(cfg, shapes, full_frame=True)
     crop = BeamRenderer(cfg, shapes)
     try:
-        c = crop.window
+        c = crop.view.window
         gains = full.gains(16)
         assert np.array_equal(gains, crop.gains(16))
         for frame in (1, 5, 15):

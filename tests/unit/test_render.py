@@ -1,5 +1,5 @@
-"""Fast checks of the synthetic phone camera (sim.camera, sim.render, sim.occlusion,
-sim.disturbance, sim.truth_io)."""
+"""Fast checks of the synthetic phone camera (sim.camera, sim.view, sim.masks, sim.render,
+sim.truth, sim.clip, sim.figures, sim.occlusion, sim.disturbance, sim.truth_io)."""
 
 from __future__ import annotations
 
@@ -19,8 +19,11 @@ from sim.camera import (
     sensor_readout,
     srgb8_to_linear16,
 )
+from sim.clip import render_clip
+from sim.figures import figure_frames
+from sim.masks import face_rows, region_heights, regions_mask
 from sim.occlusion import OcclusionConfig
-from sim.render import BeamRenderer, figure_frames, render_clip
+from sim.render import BeamRenderer
 from sim.scene import (
     GEOMETRY,
     BeamMesh,
@@ -34,6 +37,7 @@ from sim.scene import (
     release_renderer,
     synthetic_shapes,
 )
+from sim.view import View
 
 # A reduced sensor (same optics scaled down) keeps full frames cheap; crops are
 # windows of it, exactly as on the 4K sensor.
@@ -229,7 +233,7 @@ def _assert_crop_matches(full: BeamRenderer, crop: BeamRenderer, frames, gains) 
     the beam's); it happens to ~1e-4 of the values. Rendering the full frame's
     crop region through the crop's viewport would hide this, not fix it.
     """
-    c = crop.window
+    c = crop.view.window
     for frame in frames:
         a = full.frame(frame, gains[frame])[c.y:c.y + c.height, c.x:c.x + c.width]
         b = crop.frame(frame, gains[frame])
@@ -239,14 +243,14 @@ def _assert_crop_matches(full: BeamRenderer, crop: BeamRenderer, frames, gains) 
 
 def test_crop_pixels_equal_full_frame_pixels(small_pair):
     cfg, full, crop = small_pair
-    c = crop.window
-    assert (full.window.width, full.window.height) == (640, 360)
+    c = crop.view.window
+    assert (full.view.window.width, full.view.window.height) == (640, 360)
     gains = full.gains(20)
     assert np.array_equal(gains, crop.gains(20))  # auto-exposure never depends on the window
     _assert_crop_matches(full, crop, (0, 4, 7, 11, 18), gains)  # 4, 18: the sheet enters, leaves
     assert np.array_equal(full.mask[c.y:c.y + c.height, c.x:c.x + c.width], crop.mask)
     for frame in (2, 7):  # the truth does not depend on the window either
-        a, b = full.truth_frame(frame), crop.truth_frame(frame)
+        a, b = full.truth.frame(frame), crop.truth.frame(frame)
         assert all(np.array_equal(a[k], b[k]) for k in a)
 
 
@@ -302,15 +306,15 @@ def test_truth_csv_matches_projection_of_the_simulated_beam_and_the_image(shapes
     # the image at the measurement row: the face's intensity centroid is at rest + dx
     r = BeamRenderer(cfg, shapes)
     try:
-        row = int(round(rest[1])) - r.window.y
-        cols = np.arange(r.window.width)
+        row = int(round(rest[1])) - r.view.window.y
+        cols = np.arange(r.view.window.width)
         for f in (0, 6, 11):
             img = r.frame_linear(f)[row].mean(1)
-            sel = np.abs(cols + r.window.x - (rest[0] + dx[f])) <= 12
+            sel = np.abs(cols + r.view.window.x - (rest[0] + dx[f])) <= 12
             base = np.interp(cols[sel], [cols[sel][0], cols[sel][-1]],
                              [img[sel][:3].mean(), img[sel][-3:].mean()])
             w = np.clip(img[sel] - base, 0, None)
-            measured = (w * cols[sel]).sum() / w.sum() + r.window.x
+            measured = (w * cols[sel]).sum() / w.sum() + r.view.window.x
             # 4x MSAA quantises each vertical edge to 1/4 px coverage steps: the
             # centroid of a 14 px face is good to ~0.1 px
             assert abs(measured - (rest[0] + dx[f])) < 0.15, (f, measured, rest[0] + dx[f])
@@ -351,7 +355,7 @@ def test_rolling_shutter_skews_a_moving_edge_in_proportion_to_readout():
             img = r.frame_linear(3).mean(2)
             background = r.frame_linear(12).mean(2)  # the beam has left these columns
             rows = np.arange(20, 340)
-            cols = np.arange(int(r.camera.cx) - 8, int(r.camera.cx) + 10)
+            cols = np.arange(int(r.view.camera.cx) - 8, int(r.view.camera.cx) + 10)
             face = img[np.ix_(rows, cols)] - background[np.ix_(rows, cols)]
             centre = (face * cols).sum(1) / face.sum(1)  # signed: linear in the blend
         finally:
@@ -371,7 +375,7 @@ def test_rolling_shutter_crop_matches_full_frame(shapes):
     full = BeamRenderer(cfg, shapes, full_frame=True)
     crop = BeamRenderer(cfg, shapes)
     try:
-        assert full.sampling(4).times.size > crop.cam_cfg.motion_blur_subframes  # spans the read-out
+        assert full.subframes.at(4).sampling.times.size > crop.view.cam_cfg.motion_blur_subframes  # spans the read-out
         _assert_crop_matches(full, crop, (4,), {4: 0.5})
     finally:
         full.close()
@@ -384,16 +388,16 @@ def _sheet_share_model(r: BeamRenderer, frame: int) -> np.ndarray:
     the SheetPath extent at the sub-frames, as the fraction of every undistorted
     pixel's footprint it covers, averaged with the sub-frame weights, then
     remapped through the lens like the image (global shutter)."""
-    cam, rw = r.camera, r.plan.render
-    smp = r.sampling(frame)
-    weights = smp.weights(np.array([r.window.y]))[0]
+    cam, rw = r.view.camera, r.plan.render
+    smp = r.subframes.at(frame).sampling
+    weights = smp.weights(np.array([r.view.window.y]))[0]
     uu, vv = np.meshgrid(np.arange(rw.x, rw.x + rw.width, dtype=float),
                          np.arange(rw.y, rw.y + rw.height, dtype=float))
-    s, _ = r.sheet_coords(((uu - cam.cx) / cam.fx, (vv - cam.cy) / cam.fy))
-    along_x = r.occ_cfg.direction in ("+x", "-x")
-    pixel_mm = r.occ_cfg.distance_mm / (cam.fx if along_x else cam.fy)
+    s, _ = r.view.sheet_coords(((uu - cam.cx) / cam.fx, (vv - cam.cy) / cam.fy))
+    along_x = r.view.occ_cfg.direction in ("+x", "-x")
+    pixel_mm = r.view.occ_cfg.distance_mm / (cam.fx if along_x else cam.fy)
     share = np.zeros(s.shape)
-    for w, t in zip(weights, frame / r.cam_cfg.fps + smp.times, strict=True):
+    for w, t in zip(weights, frame / r.view.cam_cfg.fps + smp.times, strict=True):
         ext = r.sheet.extent(t)
         if w > 0 and ext is not None:
             share += w * np.clip((np.minimum(s + pixel_mm / 2, ext[1])
@@ -424,7 +428,7 @@ def test_sheet_pixels_agree_with_the_occlusion_model(direction):
             model = _sheet_share_model(sheet, f)
             err = np.abs(seen - model)
             assert err.max() < 0.15 and err.mean() < 0.02, (f, err.max(), err.mean())
-            truth = sheet.truth_frame(f)
+            truth = sheet.truth.frame(f)
             # the POIs flagged covered are those the sheet reaches at a sub-frame
             assert np.array_equal(truth["poi_covered"], model[poi] > 0), f
             flags.append(truth["occluded"])
@@ -445,9 +449,9 @@ def test_partial_occlusion_covers_the_configured_share_of_the_mask(direction):
     clear = BeamRenderer(cfg, None, occlusion=dataclasses.replace(occ, enabled=False))
     try:
         poi = sheet.mask > 0
-        flags = [sheet.truth_frame(f)["occluded"] for f in range(24)]
+        flags = [sheet.truth.frame(f)["occluded"] for f in range(24)]
         assert flags == [int(6 <= f < 18) for f in range(24)]
-        truth = sheet.truth_frame(12)
+        truth = sheet.truth.frame(12)
         background = clear.frame_linear(12).mean(2)
         seen = sheet.frame_linear(12).mean(2) - background
         sheet_value = np.median(seen[poi][truth["poi_covered"]])
@@ -536,7 +540,7 @@ def test_auto_exposure_meters_the_render_backs_off_for_the_sheet_and_recovers(sh
     r = BeamRenderer(cfg, shapes, full_frame=True)
     try:
         meters = np.array([r.meter(i) for i in range(50)])
-        ae = AutoExposure(r.cam_cfg)
+        ae = AutoExposure(r.view.cam_cfg)
         gains = np.array([ae.step(m) for m in meters])
         assert np.array_equal(gains, r.gains(50))  # deterministic
         # the meter is the rendered image's brightness
@@ -566,9 +570,9 @@ def test_corner_detectors_find_nothing_inside_the_painted_beam(shapes, harris):
     try:
         frame = 20  # the beam is 4 px right of rest: where the mask was drawn
         img = r.frame(frame, r.gains(frame + 1)[frame])
-        truth = r.truth_frame(frame)
+        truth = r.truth.frame(frame)
         face = np.zeros_like(r.mask)  # the POIs where they are in this frame
-        moved = np.rint(r.poi_window_px + np.stack([truth["poi_dx_px"], truth["poi_dy_px"]], -1))
+        moved = np.rint(r.pois.window_px + np.stack([truth["poi_dx_px"], truth["poi_dy_px"]], -1))
         face[moved[:, 1].astype(int), moved[:, 0].astype(int)] = 1
         assert abs(truth["dx_px"]) > 3
         pts = np.rint(_corners(img, harris)).astype(int)
@@ -589,11 +593,11 @@ def test_distractors_put_corners_on_the_wall_near_the_beam(shapes):
     try:
         centres, kinds = with_fixtures.distractors
         assert len(centres) == 4 and sorted(kinds) == [0, 1, 2, 3]
-        plane_y = with_fixtures.scene_cfg.background_distance_mm - 1.0
+        plane_y = with_fixtures.view.scene_cfg.background_distance_mm - 1.0
         world = np.stack([centres[:, 0], np.full(4, plane_y), centres[:, 1]], -1)
-        px = with_fixtures.camera.project(world) - (with_fixtures.window.x, with_fixtures.window.y)
-        half_px = 0.5 * 15.0 * with_fixtures.camera.fx / (plane_y - with_fixtures.camera.camera_y_mm)
-        beam_u = with_fixtures.measure_px[0] - with_fixtures.window.x
+        px = with_fixtures.view.camera.project(world) - (with_fixtures.view.window.x, with_fixtures.view.window.y)
+        half_px = 0.5 * 15.0 * with_fixtures.view.camera.fx / (plane_y - with_fixtures.view.camera.camera_y_mm)
+        beam_u = with_fixtures.view.measure_px[0] - with_fixtures.view.window.x
         assert np.all(np.abs(px[:, 0] - beam_u) > 2 * half_px)  # off the beam and its logo
         assert np.all((px > half_px).all(1) & (px < (480 - half_px, 240 - half_px)).all(1))
     finally:
@@ -633,7 +637,7 @@ def test_camera_motion_moves_the_image_as_the_truth_says(shapes, camera):
     moving = BeamRenderer(_small_config(noise=False, **camera), shapes)
     try:
         for f in (5, 17, 30):
-            a, b = still.truth_frame(f), moving.truth_frame(f)
+            a, b = still.truth.frame(f), moving.truth.frame(f)
             assert all(np.array_equal(a[k], b[k]) for k in ("dx_px", "dy_px", "poi_dx_px"))
             assert a["cam_dx_px"] == a["cam_dy_px"] == 0.0
             shift = np.array([b["cam_dx_px"], b["cam_dy_px"]])
@@ -661,13 +665,13 @@ def test_flicker_aliases_and_clouds_drift_the_frame_brightness(shapes):
     slow = BeamRenderer({**plain, "scene": {"clouds": True, "cloud_depth": 0.2,
                                             "light_drift": True}}, shapes)
     try:
-        light = np.array([flick.truth_frame(f)["light_rel"] for f in range(9)])
+        light = np.array([flick.truth.frame(f)["light_rel"] for f in range(9)])
         # 100 Hz seen at 60 fps: the brightness beats at 20 Hz, every third frame alike
         assert np.allclose(light[:6], light[3:9]) and np.ptp(light) > 0.1
         for f in (0, 1):
             ratio = flick.frame_linear(f).mean() / r0.frame_linear(f).mean()
             assert abs(ratio - light[f]) < 1e-3
-        clouds = np.array([slow.truth_frame(f)["light_rel"] for f in range(0, 60, 6)])
+        clouds = np.array([slow.truth.frame(f)["light_rel"] for f in range(0, 60, 6)])
         assert np.all(np.abs(np.diff(clouds)) < 0.05) and np.ptp(clouds) > 0
     finally:
         for r in (r0, flick, slow):
@@ -716,7 +720,7 @@ def test_render_clip_writes_documented_files_streamed(shapes, tmp_path):
     r = BeamRenderer(cfg, shapes)
     try:
         raw = r.frame(0, r.gains(1)[0])
-        truth = r.truth(4)
+        truth = r.truth.stack(4)
         gains = r.gains(4)
     finally:
         r.close()
@@ -752,14 +756,14 @@ def test_figure_frames_pick_motion_not_the_held_pluck():
     cfg = {**_small_config(), "occlusion": {"enabled": True, "start_s": 1.0, "duration_s": 0.5}}
     r = BeamRenderer(cfg, shapes)
     try:
-        frames = figure_frames(r, r.n_frames(1.9))
+        frames = figure_frames(r, r.view.n_frames(1.9))
         f = frames["motion"]
-        truth = r.truth_frame(f)
-        speed = (r.truth_frame(f + 1)["dx_px"] - r.truth_frame(f - 1)["dx_px"]) * 30
+        truth = r.truth.frame(f)
+        speed = (r.truth.frame(f + 1)["dx_px"] - r.truth.frame(f - 1)["dx_px"]) * 30
         assert f / 60 > 0.5 and abs(truth["dx_px"]) > 0.3 and abs(speed) > 10
-        assert r.truth_frame(frames["occluded"])["occluded"] == 1
+        assert r.truth.frame(frames["occluded"])["occluded"] == 1
         assert 1.25 <= frames["occluded"] / 60 < 1.3
-        assert frames["occluding"] / 60 < 1.0 and r.truth_frame(frames["occluding"])["occluded"] == 0
+        assert frames["occluding"] / 60 < 1.0 and r.truth.frame(frames["occluding"])["occluded"] == 0
     finally:
         r.close()
 
@@ -815,28 +819,23 @@ def _modal_scenario_config():
 
 
 def test_regions_mask_labels_each_sensor_height_on_the_beam_face():
-    from sim.render import region_heights
-
     cfg = _modal_scenario_config()
     heights, half = region_heights(cfg)
     assert heights.tolist() == [250.0, 500.0, 750.0, 1000.0]
-    r = BeamRenderer(cfg, None)
-    try:
-        labels = r.regions_mask(heights, half)
-        face_rows, _ = r._face_rows()
-        project_row = lambda z: float(r.camera.project(np.array([0.0, r.face_y_mm, z]))[1]) - r.window.y  # noqa: E731
-        length = r.scene_cfg.beam_length_mm
-    finally:
-        r.close()
-    assert labels.dtype == np.uint8 and labels.shape == (r.window.height, r.window.width)
+    view = View(cfg, None)
+    labels = regions_mask(view, heights, half)
+    face, _ = face_rows(view)
+    project_row = lambda z: float(view.camera.project(np.array([0.0, view.face_y_mm, z]))[1]) - view.window.y  # noqa: E731
+    length = view.scene_cfg.beam_length_mm
+    assert labels.dtype == np.uint8 and labels.shape == (view.window.height, view.window.width)
     assert set(np.unique(labels).tolist()) == {0, 1, 2, 3, 4}
     # every labelled pixel is a POI of the binary mask (the beam's face, 3 px in)
-    assert np.all(face_rows[labels > 0])
+    assert np.all(face[labels > 0])
     for k, height in enumerate(heights, start=1):
         rows = np.flatnonzero((labels == k).any(axis=1))
         assert np.all(np.diff(rows) == 1), f"region {k} is not one band of rows"
         # 2 x half_height_mm tall at 0.357 mm/px, give or take the lens's distortion
-        assert abs(rows.size - 2 * half / r.mm_per_px) < 6, (k, rows.size)
+        assert abs(rows.size - 2 * half / view.mm_per_px) < 6, (k, rows.size)
         if height + half <= length:
             centre = project_row(height)
             assert rows[0] < centre < rows[-1], (k, centre, rows[[0, -1]])
@@ -851,9 +850,5 @@ def test_regions_mask_labels_each_sensor_height_on_the_beam_face():
 def test_regions_mask_names_the_crop_when_a_height_is_outside_the_window():
     cfg = _modal_scenario_config()
     cfg["camera"] = {**cfg["camera"], "crop_height_px": 1200}
-    r = BeamRenderer(cfg, None)
-    try:
-        with pytest.raises(ValueError, match="crop_height_px"):
-            r.regions_mask([250.0, 500.0, 750.0, 1000.0], 25.0)
-    finally:
-        r.close()
+    with pytest.raises(ValueError, match="crop_height_px"):
+        regions_mask(View(cfg, None), [250.0, 500.0, 750.0, 1000.0], 25.0)
