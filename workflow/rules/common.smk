@@ -77,9 +77,14 @@ def scenario_methods(scenario):
     return scenario_config(scenario).get("methods", METHODS)
 
 
-# The calibration board of `python -m sim render calibration` and `refflow calibrate`.
-CALIBRATION_BOARD = "9x6"
-CALIBRATION_SQUARE_MM = 40.0
+def calibration_board(wildcards):
+    """The checkerboard of `python -m sim render calibration` and `refflow calibrate` (config
+    track.calibration_board, inner corners COLSxROWS)."""
+    return str(scenario_config(wildcards.scenario)["track"]["calibration_board"])
+
+
+def calibration_square_mm(wildcards):
+    return float(scenario_config(wildcards.scenario)["track"]["calibration_square_mm"])
 
 
 def track_config(scenario):

@@ -35,8 +35,8 @@ rule calibration_set:
         directory(f"{RESULTS}/{{scenario}}/calibration/images"),
     params:
         code=CODE["sim"],
-        board=CALIBRATION_BOARD,
-        square_mm=CALIBRATION_SQUARE_MM,
+        board=calibration_board,
+        square_mm=calibration_square_mm,
     conda:
         "../envs/refflow.yaml"
     benchmark:
@@ -55,8 +55,8 @@ rule calibrate:
         f"{RESULTS}/{{scenario}}/calibration/calibration.json",
     params:
         code=CODE["flow"],
-        board=CALIBRATION_BOARD,
-        square_mm=CALIBRATION_SQUARE_MM,
+        board=calibration_board,
+        square_mm=calibration_square_mm,
     conda:
         "../envs/refflow.yaml"
     benchmark:
