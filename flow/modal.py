@@ -26,7 +26,7 @@ import numpy as np
 from flow.errors import InputError
 from flow.figures import read_measurements, resample_uniform
 from flow.outputs import check_outputs
-from refflow.io import atomic_paths, json_text, versions
+from refflow.io import atomic_paths, finite_or_none, json_text, versions
 
 # refflow.modal (scipy.signal, a second to import) is imported where it is used: the parser of
 # every `refflow` command is built from this module's add_parser.
@@ -340,17 +340,13 @@ def _normalised(shape: list[float]) -> list[float]:
     return (values / peak).tolist() if peak != 0 else values.tolist()
 
 
-def _finite_or_none(value: float) -> float | None:
-    return float(value) if math.isfinite(value) else None  # JSON has no NaN
-
-
 def _mode_entry(index: int, mode: dict[str, Any]) -> dict[str, Any]:
     from refflow.modal import mac
 
-    return {"mode": index, "freq_hz": mode["freq_hz"], "damping_ratio": _finite_or_none(mode["damping_ratio"]),
+    return {"mode": index, "freq_hz": mode["freq_hz"], "damping_ratio": finite_or_none(mode["damping_ratio"]),
             "shape": _normalised(mode["shape"]),
             "fdd_freq_hz": mode["fdd_freq_hz"], "fdd_shape": _normalised(mode["fdd_shape"]),
-            "mac_ssi_fdd": _finite_or_none(mac(mode["shape"], mode["fdd_shape"])),
+            "mac_ssi_fdd": finite_or_none(mac(mode["shape"], mode["fdd_shape"])),
             "poles_used": mode["poles_used"]}
 
 
@@ -458,18 +454,20 @@ def reference_backdrop(csv_path: Path, points: list[dict[str, Any]]) -> tuple[np
         calibration = sidecar.get("calibration")
     except (OSError, ValueError, KeyError, TypeError):
         return None, f"{csv_path.with_suffix('.json')} names no input video"
-    from flow.io import FrameSource, Roi, as_uint8
+    if calibration and list(calibration.get("video_origin", [0, 0])) != [0, 0]:
+        return None, "the run's video is a window of the calibrated sensor (--video-origin)"
+    from flow import inputs
+    from flow.io import as_uint8
+    from flow.options import SourceOptions
 
     try:
-        source = FrameSource(video, require_fps=False)
+        # The whole frame, undistorted as `refflow track` undistorts it.
+        options = SourceOptions(str(video), calibration=calibration["file"] if calibration else None)
+        source = inputs.open_source(options, need_time=False)
+        undistort, _ = inputs.undistorter(options, source)
         frame = next((grey for _, _, grey in source.frames(index, index + 1)), None)
-        if frame is not None and calibration:
-            if list(calibration.get("video_origin", [0, 0])) != [0, 0]:
-                return None, "the run's video is a window of the calibrated sensor (--video-origin)"
-            from flow.calibration import Undistorter, load_calibration
-
-            size = (frame.shape[1], frame.shape[0])
-            frame = Undistorter(load_calibration(calibration["file"]), Roi(0, 0, *size), size)(frame)
+        if frame is not None and undistort is not None:
+            frame = undistort(frame)
     except (InputError, OSError, KeyError, TypeError, ValueError) as err:
         return None, f"the run's video {str(video)!r} cannot be read again ({str(err).splitlines()[0]})"
     if frame is None:

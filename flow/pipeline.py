@@ -25,7 +25,8 @@ from flow.errors import InputError
 from flow.io import FrameSource
 from flow.options import FilterOptions, FramesInfo, InputInfo, MergeOptions, RunInfo, TrackOptions
 from flow.scale import NO_SCALE_NOTE, Scale, check_scale_options, measurement_scale, positive
-from flow.write import finite_or_none, output_names, write_outputs
+from flow.write import output_names, write_outputs
+from refflow.io import finite_or_none
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,6 @@ CSV last), so a failure or Ctrl-C leaves none of them.
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 from typing import Any
@@ -18,11 +17,7 @@ from flow.options import FilterOptions, OutputOptions, RunInfo
 from flow.outputs import check_outputs
 from flow.scale import Scale
 from refflow import trackcsv
-from refflow.io import atomic_paths, json_text, versions
-
-
-def finite_or_none(value: float | None) -> float | None:
-    return value if value is not None and math.isfinite(value) else None
+from refflow.io import atomic_paths, finite_or_none, json_text, versions
 
 
 def output_names(outputs: OutputOptions, inputs: list[tuple[str, Path]]) -> list[Path]:

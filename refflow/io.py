@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import math
 import os
 import platform
 import tempfile
@@ -94,6 +95,12 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, Path):
         return str(value)
     return value
+
+
+def finite_or_none(value: float | None) -> float | None:
+    """``value``, or None where it is missing, NaN or infinite: what a JSON writer stores for an
+    unknown number (JSON has no NaN; :func:`json_text` refuses one)."""
+    return value if value is not None and math.isfinite(value) else None
 
 
 def json_text(data: Mapping[str, Any]) -> str:
