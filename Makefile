@@ -10,7 +10,7 @@ export PATH := $(CURDIR)/$(BIN):$(PATH)
 export PYOPENGL_PLATFORM ?= egl
 export MPLBACKEND ?= Agg
 
-.PHONY: all test lint bench clean-results browser
+.PHONY: all test lint bench clean-results browser lock
 
 all: $(STAMP)
 	$(BIN)/snakemake --cores $(CORES) --rerun-incomplete all
@@ -35,8 +35,15 @@ lint: $(STAMP)
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
 
-# Re-install only when the project's dependencies change.
-$(STAMP): pyproject.toml
+# Re-install only when the project's dependencies change. requirements.lock pins every
+# package's version (pip freeze of a working .venv): new releases of MuJoCo or OpenCV change
+# the simulated beam and the baselines' numbers, and results/ must regenerate exactly.
+# Refresh it deliberately: `make lock` in an up-to-date .venv, then regenerate results/.
+$(STAMP): pyproject.toml requirements.lock
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -c requirements.lock -e '.[test]'
 	touch $(STAMP)
+
+# Pin what .venv has now (run after a deliberate upgrade, then `make all` to regenerate results/).
+lock:
+	$(BIN)/python -m pip freeze --exclude-editable | grep -v '^refflow' > requirements.lock
