@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from flow.deepmatching import MatchParams, deep_matching, densify, search_radius
-from flow.member import MemberEdges
+from flow.member import MemberEdges, MemberFit
 from flow.methods.base import CROP_MARGIN_PX, DenseMethod, check_pair, register
 from flow.variational import VariationalParams, Workspace, refine
 
@@ -114,6 +114,7 @@ class _Region:
     ref_level: float  # the reference's median grey at the POIs
     theta: np.ndarray | None = None  # the motion of the chain's last frame (None: measure in full)
     key_mismatch: float = float("nan")  # the POIs' mismatch at the chain's last full measurement
+    key_along: np.ndarray | None = None  # the along-member motion the chain's key took from its dense flow
 
     @classmethod
     def of(cls, reference: np.ndarray, mask: np.ndarray, label: int) -> _Region:
@@ -126,6 +127,36 @@ class _Region:
                    np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1),
                    np.clip(np.rint(inward_x).astype(np.intp), 0, width - 1),
                    float(np.median(reference[mask])) or 1.0)
+
+    def motion(self, reference: np.ndarray, current: np.ndarray, fit: MemberFit,
+               along: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
+        """The POIs' motion from a member fit, its photometric mismatch, and the along-member
+        motion it took from elsewhere (None: the fit's own).
+
+        The outline measures the motion across the member along its long edges; along the
+        member it has only the ends of the grown mask, which are no edges where the member
+        runs on beyond the mask, and the low-order field extrapolates them over the POIs.
+        Given the POIs' along-member motion from elsewhere (``along``: the dense flow's in
+        a full measurement, the chain key's in a tracked frame), the POIs also try the
+        field's across-member motion with that along-member motion, and take whichever of
+        the two matches them better.
+        """
+        u, v = self.member.displacement(fit)
+        best = (u, v, _mismatch(reference, current, self.cols, self.rows, u, v), None)
+        if along is not None:
+            n_dir, t_dir = self.member.axes[:, 1], self.member.axes[:, 0]
+            across = u * n_dir[0] + v * n_dir[1]
+            mixed_u = across * n_dir[0] + along * t_dir[0]
+            mixed_v = across * n_dir[1] + along * t_dir[1]
+            mixed = _mismatch(reference, current, self.cols, self.rows, mixed_u, mixed_v)
+            if mixed < best[2]:
+                best = (mixed_u, mixed_v, mixed, along)
+        return best
+
+    def along(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """The along-member component of a motion at the POIs."""
+        t_dir = self.member.axes[:, 0]
+        return u * t_dir[0] + v * t_dir[1]
 
     def gain(self, current: np.ndarray) -> float | None:
         """The frame's brightness at the POIs relative to the reference's (lighting changes)."""
@@ -229,7 +260,7 @@ class DeepFlow(DenseMethod):
         restart after a bind every call of :meth:`calc` stands alone."""
         self._chaining = self.chain_length > 1 and bool(self._regions)
         for region in self._regions:
-            region.theta, region.key_mismatch = None, float("nan")
+            region.theta, region.key_mismatch, region.key_along = None, float("nan"), None
 
     def _solve(self, reference: np.ndarray, current: np.ndarray, *,
                whole_shape: tuple[int, ...]) -> np.ndarray:
@@ -280,17 +311,16 @@ class DeepFlow(DenseMethod):
         fit = region.member.fit(current, prior, gain=region.gain(current))
         if not fit.ok:
             return None
-        u, v = region.member.displacement(fit)
-        # The edges must not make the POIs' own match worse than the dense flow's: on a
-        # textured member (or outlines that are not the member's) the dense flow is right.
         dense_u = flow[region.rows, region.cols, 0]
         dense_v = flow[region.rows, region.cols, 1]
-        edges = _mismatch(reference, current, region.cols, region.rows, u, v)
+        u, v, edges, along = region.motion(reference, current, fit, region.along(dense_u, dense_v))
+        # The edges must not make the POIs' own match worse than the dense flow's: on a
+        # textured member (or outlines that are not the member's) the dense flow is right.
         if edges > MATCH_TOLERANCE * _mismatch(reference, current, region.cols, region.rows,
                                                dense_u, dense_v) + MATCH_SLACK:
             return None
         if self._chaining:
-            region.theta, region.key_mismatch = fit.params, edges
+            region.theta, region.key_mismatch, region.key_along = fit.params, edges, along
         return u, v, region.member.mean_sigma(fit)
 
     @staticmethod
@@ -304,8 +334,7 @@ class DeepFlow(DenseMethod):
         fit = member.fit(current, prior, gain=region.gain(current))
         if not fit.ok:
             return None
-        u, v = member.displacement(fit)
-        edges = _mismatch(reference, current, region.cols, region.rows, u, v)
+        u, v, edges, _ = region.motion(reference, current, fit, region.key_along)
         key = region.key_mismatch
         if not key / WARM_RATIO - MATCH_SLACK <= edges <= key * WARM_RATIO + MATCH_SLACK:
             return None
