@@ -195,3 +195,25 @@ def test_filters_in_small_blocks_match_one_block(monkeypatch) -> None:
     for name in ("valid", "poi_kept_frac", "flow_spread_px"):
         assert np.allclose(getattr(whole, name), getattr(blocked, name), equal_nan=True), name
     assert np.allclose(whole.filtered.dx, blocked.filtered.dx, atol=1e-12)
+
+
+def test_uncertainty_carries_the_reference_frames_own_error() -> None:
+    """Every frame shares the reference's error: frames whose own fit reports sigma but whose
+    errors all carry one common offset of 1.2 sigma (seen on an independent clip) are covered
+    at 2 sigma only once the reference's term is in."""
+    from flow.quality import with_reference_term
+
+    rng = np.random.default_rng(3)
+    own = np.full(400, 0.03)
+    error = -1.2 * 0.03 + 0.03 * rng.standard_normal(400)
+    valid = np.ones(400, bool)
+    assert np.mean(np.abs(error) < 2 * own) < 0.85  # 0.79 expected
+    total = with_reference_term(own, valid)
+    assert np.allclose(total, 0.03 * np.sqrt(2))
+    assert 0.9 <= np.mean(np.abs(error) < 2 * total) <= 0.99
+    # The typical sigma is that of the valid frames; NaN stays NaN.
+    own[:100], valid[:100] = 5.0, False
+    own[150] = np.nan
+    total = with_reference_term(own, valid)
+    assert np.isclose(total[200], 0.03 * np.sqrt(2)) and np.isnan(total[150])
+    assert np.isclose(total[0], np.hypot(5.0, 0.03))
