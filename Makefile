@@ -36,8 +36,9 @@ bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
 
 # Re-install only when the project's dependencies change. requirements.lock pins every
-# package's version (pip freeze of a working .venv): new releases of MuJoCo or OpenCV change
-# the simulated beam and the baselines' numbers, and results/ must regenerate exactly.
+# package's version (pip freeze of a working .venv): newer releases of the dependencies
+# changed the workbench's numbers with the same code (which package did is not known), and
+# results/ must regenerate exactly.
 # Refresh it deliberately: `make lock` in an up-to-date .venv, then regenerate results/.
 $(STAMP): pyproject.toml requirements.lock
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)

@@ -1,8 +1,8 @@
 """The environment is pinned: results/ regenerate exactly only with the same packages.
 
-A new MuJoCo, OpenCV or x264 build changes the simulated beam, the rendered clips and the
-baselines' numbers (seen: the compression scenario's deepflow RMSE went 0.15 -> 0.50 px when
-a fresh machine installed newer releases of the unpinned dependencies). The Makefile installs
+Newer releases of the dependencies changed the workbench's numbers with the same code (the
+compression scenario's deepflow RMSE went 0.15 -> 0.50 px when a fresh machine installed newer
+releases of the unpinned dependencies; which package did it is not known). The Makefile installs
 with ``-c requirements.lock``; these tests hold that the lock pins every package that shapes a
 number and that the running environment is the locked one.
 """
