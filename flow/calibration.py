@@ -44,9 +44,12 @@ def find_corners(grey: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
     """Sub-pixel inner corners of the board in a grey image, or None.
 
     The board search of ``findChessboardCorners`` takes tens of seconds on a 4K
-    frame; it runs on a copy reduced to :data:`SEARCH_SIDE_PX` (and at full size
-    only if that fails), and ``cornerSubPix`` then refines the corners on the
-    full-resolution image with a window matched to the board's square size.
+    frame, and minutes where the board is not wholly in view; it runs on a copy
+    reduced to :data:`SEARCH_SIDE_PX`. Where that finds nothing (a board too small
+    for the reduced copy, or one cut by the frame's edge), the sector-based search
+    (``findChessboardCornersSB``, about a second on a 4K frame) looks at full size.
+    ``cornerSubPix`` then refines the corners on the full-resolution image with a
+    window matched to the board's square size.
     """
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
     shrink = min(1.0, SEARCH_SIDE_PX / max(grey.shape))
@@ -58,7 +61,7 @@ def find_corners(grey: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
             # INTER_AREA maps pixel centres by (x + 0.5) * shrink - 0.5
             corners = ((corners + 0.5) / shrink - 0.5).astype(np.float32)
     if not found:
-        found, corners = cv2.findChessboardCorners(grey, board, flags=flags)
+        found, corners = cv2.findChessboardCornersSB(grey, board)
     if not found:
         return None
     # Half the smallest spacing of neighbouring corners keeps the window inside one square.

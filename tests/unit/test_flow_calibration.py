@@ -278,3 +278,39 @@ def test_identical_board_views_are_refused_not_written(tmp_path, view_images) ->
     assert main(["calibrate", str(folder), "--board", f"{BOARD[0]}x{BOARD[1]}", "--square-mm",
                  str(SQUARE_MM), "--out", str(out)]) == 2
     assert not out.exists()
+
+
+def _true_corners(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    grid = np.array([[c, r, 0.0] for r in range(BOARD[1]) for c in range(BOARD[0])]) * SQUARE_MM
+    return cv2.projectPoints(grid, rvec, tvec, K, DIST)[0].reshape(-1, 2)
+
+
+def test_full_size_search_finds_the_board_the_reduced_search_missed(monkeypatch) -> None:
+    """Where the search on the reduced copy finds nothing (a board too small for it), the
+    full-size search must find the corners, sub-pixel; the search it uses there must not be
+    the reduced one's again (minutes on a 4K frame where the board is cut by the edge)."""
+    import flow.calibration as calibration
+
+    rvec, tvec = board_poses(1, seed=3)[0]
+    image = render_view(board_texture(), rvec, tvec)
+    big = cv2.resize(image, None, fx=2.0, fy=2.0, interpolation=cv2.INTER_LINEAR)  # 1920 px: reduced first
+    monkeypatch.setattr(calibration.cv2, "findChessboardCorners",
+                        lambda *args, **kwargs: (False, None))  # the reduced (and classic) search misses
+    corners = calibration.find_corners(big, BOARD)
+    assert corners is not None
+    found = (corners.reshape(-1, 2) + 0.5) / 2.0 - 0.5  # back to the rendered view's pixels
+    truth = _true_corners(rvec, tvec)
+    if np.linalg.norm(found[0] - truth[0]) > np.linalg.norm(found[0] - truth[-1]):
+        found = found[::-1]  # the board is symmetric: either corner may come first
+    assert np.abs(found - truth).max() < 0.15
+
+
+def test_a_board_cut_by_the_frame_edge_is_not_found() -> None:
+    """A view with part of the board outside the frame gives no corners (not a wrong grid)."""
+    from flow.calibration import find_corners
+
+    rvec, tvec = board_poses(1, seed=3)[0]
+    image = render_view(board_texture(), rvec, tvec)
+    truth = _true_corners(rvec, tvec)
+    cut = int(np.sort(truth[:, 0])[len(truth) // 3])  # a third of the corners left of the cut
+    assert find_corners(np.ascontiguousarray(image[:, cut:]), BOARD) is None
