@@ -81,3 +81,14 @@ def test_fit_refuses_a_frame_or_prior_of_another_shape():
         edges.fit(clip.frames[1][:, 1:], prior)
     with pytest.raises(ValueError, match=rf"\({edges.n_profiles + 1}, 2\).*{edges.n_profiles} edge"):
         edges.fit(clip.frames[1], np.zeros((edges.n_profiles + 1, 2)))
+
+
+def test_member_grey_is_fitted_with_pixels_of_the_outlines_own_half():
+    wide_clip = make_clip(seed=6, frames=1)
+    wide = MemberEdges.from_reference(wide_clip.frames[0], wide_clip.mask)
+    assert np.median(wide.n_member[~wide.vertical]) == 6
+    narrow_clip = make_clip(seed=6, frames=1, bar_width=8, mask_margin=2)
+    narrow = MemberEdges.from_reference(narrow_clip.frames[0], narrow_clip.mask)
+    # An 8 px member, about 10 px with its outlines' pixels: 5 px per outline, one of them the
+    # outline's own (more only where the support grew over wall as grey as the paint).
+    assert np.median(narrow.n_member[~narrow.vertical]) <= 4
