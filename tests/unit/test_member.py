@@ -83,6 +83,35 @@ def test_fit_refuses_a_frame_or_prior_of_another_shape():
         edges.fit(clip.frames[1], np.zeros((edges.n_profiles + 1, 2)))
 
 
+def test_outline_moved_onto_background_the_reference_shows_is_located_by_its_area():
+    # A blurred outline (lens) locks the one-pixel coverage to the pixel grid; where the member
+    # has moved onto wall the reference shows, the wall is known and the outline's area is exact.
+    motion = np.linspace(0.0, 7.0, 8)
+    clip = make_clip(seed=5, frames=8, noise=0.0, blur_px=0.8, motion_px=motion, width=240,
+                     bar_width=32)
+    right = (240 - 32) // 2 + 32 - 0.5  # the member's right outline (pixel centres at integers)
+    edges = MemberEdges.from_reference(clip.frames[0], clip.mask)
+    rows = ~edges.vertical
+    leading, trailing = rows & (edges.side > 0), rows & (edges.side < 0)
+    for i in (5, 6, 7):  # 5 px and more: the window is all beyond the reference's outline
+        guess = edges.ref.edge + edges._normal(np.full(edges.n_profiles, motion[i]), 0.0)
+        known = edges._known(clip.frames[i].astype(np.float32), guess, None)
+        found = np.isfinite(known.edge)
+        assert found[leading].sum() > 0.2 * leading.sum()  # (where the wall is darker than the member)
+        assert not found[trailing].any()  # the wall it uncovers was hidden in the reference
+        assert abs(np.median(known.edge[found & leading]) - (right + motion[i])) < 0.04
+    # Something in front of the wall beyond the outline (a passing shadow on some rows): those
+    # rows are not read from the reference's wall.
+    frame = clip.frames[7].astype(np.float32).copy()
+    x1 = int(right + motion[7])
+    frame[:40, x1 + 4:x1 + 12] += 60.0
+    guess = edges.ref.edge + edges._normal(np.full(edges.n_profiles, motion[7]), 0.0)
+    known = edges._known(frame, guess, None)
+    shadowed = leading & (edges.line < 40)
+    assert shadowed.any() and not np.isfinite(known.edge[shadowed]).any()
+    assert np.isfinite(known.edge[leading & (edges.line >= 48)]).any()
+
+
 def test_member_grey_is_fitted_with_pixels_of_the_outlines_own_half():
     wide_clip = make_clip(seed=6, frames=1)
     wide = MemberEdges.from_reference(wide_clip.frames[0], wide_clip.mask)
