@@ -22,9 +22,12 @@ two layers:
    the reference around the member): predicting it by its neighbour alone
    regresses towards the neighbour and reads the motion about 1.5 % short on a
    textured wall. ``e`` (and ``m``) are fitted by Gauss-Newton, the pixels the
-   model uses following ``e`` itself, so the estimate is continuous and does not
-   stick to its starting guess; it is exact for area-sampled images whatever the
-   member's grey. Where the member has moved onto background that the reference shows
+   model uses following ``e`` itself, so the estimate is continuous; it is exact for
+   area-sampled images whatever the member's grey, and forgets its starting guess on
+   a sharp outline. On an outline a codec has smeared over several pixels it does not:
+   the sharp model then fits several positions about equally well (0.5-1.3 px apart)
+   and stays near its start (started 1 px off on the bench's CRF 30 clip, it ends
+   0.3-0.7 px off). Where the member has moved onto background that the reference shows
    (by more than a few pixels), that background is not predicted but known: the
    outline is located by its area, the member coverage summed over a window, which no
    spread of the outline biases (a compressed clip's smoothed outlines read 1 % short
@@ -702,8 +705,9 @@ class MemberEdges:
         member pixels inside the outline), ``w_j`` the background hidden under pixel ``j``,
         predicted from the first :data:`N_PREDICT` pure background pixels beyond the
         outline. The pixels the model uses are chosen from the outline estimate itself,
-        so the estimate does not stick to the guess; pixels where the model changes
-        hands have coverage 0 or 1 and weigh nothing in it, so the estimate is continuous.
+        so on a sharp outline the estimate does not stick to the guess (on a smeared one
+        it may: see the module's notes); pixels where the model changes hands have
+        coverage 0 or 1 and weigh nothing in it, so the estimate is continuous.
         """
         finite, g, centre = self._centre(guess)
         values, inside = self._strips(image, centre)
