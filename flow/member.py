@@ -83,11 +83,6 @@ from flow.robust import MAD_TO_SIGMA
 
 # Visible background pixels the hidden ones under the outline are predicted from.
 N_PREDICT = 3
-# Pure member pixels inside the outline that the member's grey is fitted with (fewer where the
-# member is narrow: at most half its width along the line, less the outline's pixel). Codec and
-# lens ringing next to an outline moves the nearest pixels' grey; a smeared outline makes them
-# partly background. Two such pixels read a compressed clip's motion 2.5 % short, six 2 %.
-N_MEMBER = 6
 # Farthest pixel (from the first visible background pixel) a predictor is made for.
 MAX_DISTANCE = 10
 # Half length of a profile strip (pixels on each side of its centre).
@@ -250,25 +245,23 @@ def _coverage(x: float, blur: float) -> tuple[float, float]:
 
 @njit(cache=True, nogil=True)
 def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, col_error, mean,
-                blur, member_var, n_members):
+                blur, member_var):
     """Gauss-Newton steps of :meth:`MemberEdges._fine`, profile by profile (see there): the
-    outline ``e`` (strip coordinate) and the member's grey ``m`` of each profile, fitted with
-    ``n_members[i]`` pure member pixels.
+    outline ``e`` (strip coordinate) and the member's grey ``m`` of each profile.
 
     Returns ``(e, var_e, misfit, contrast, ok)``."""
     n, length = values.shape
     last = length - 1
     reach = 2.5 * blur
-    transition = int(np.ceil(2 * reach)) + 2  # transition pixels and one beyond
+    n_member = 2
+    width = int(np.ceil(2 * reach)) + 2 + n_member  # member pixels, transition, none beyond
     e_out = e_in.copy()
     var_out = np.full(n, np.nan)
     misfit_out = np.full(n, np.nan)
     contrast_out = np.zeros(n)
     ok_out = ok_in.copy()
-    wall = np.empty(transition + (max(np.max(n_members), 1) if n else 1))
+    wall = np.empty(width)
     for i in range(n):
-        n_member = n_members[i]
-        width = transition + n_member  # member pixels, transition, none beyond
         coef = col_coef if vertical[i] else row_coef
         error = col_error if vertical[i] else row_error
         mu = mean[i]
@@ -516,19 +509,6 @@ class MemberEdges:
         in_r = np.where(self.vertical, member_px, self.line)
         in_c = np.where(self.vertical, self.line, member_px)
         self.polarity = np.where(ref[in_r, in_c] >= ref[out_r, out_c], 1.0, -1.0)
-        # The member's width along each line (up to what N_MEMBER needs): its grey is fitted
-        # with pixels of this outline's half of it.
-        length = np.where(self.vertical, height, width)
-        run = np.zeros(len(self.line), np.intp)
-        inside = np.ones(len(self.line), bool)
-        for k in range(2 * N_MEMBER + 4):
-            along = member_px - k * self.side
-            inside &= (along >= 0) & (along < length)
-            along = np.clip(along, 0, length - 1)
-            inside &= support[np.where(self.vertical, along, self.line),
-                              np.where(self.vertical, self.line, along)]
-            run += inside
-        self.n_member = np.clip(run // 2 - 1, 2, N_MEMBER).astype(np.int64)
         guess = self._coarse(ref, member_px + 0.5 * self.side, None)
         # The outline in the reference under each blur model (see fit for the choice).
         outlines = [self._fine(ref, guess, None, blur) for blur in BLURS]
@@ -537,7 +517,7 @@ class MemberEdges:
         boundary = np.where(keep, sharp.edge, 0.0)
         self.px = np.where(self.vertical, self.line, boundary).astype(np.float64)
         self.py = np.where(self.vertical, boundary, self.line).astype(np.float64)
-        for name in ("line", "side", "vertical", "slope", "polarity", "n_member", "px", "py"):
+        for name in ("line", "side", "vertical", "slope", "polarity", "px", "py"):
             setattr(self, name, getattr(self, name)[keep])
         self.field = _Field(self.px, self.py, self.centre, self.axes, self.half)
         ones = np.ones(len(self.px))
@@ -674,10 +654,8 @@ class MemberEdges:
         first = HALF - KNOWN_HALF
         last = HALF + KNOWN_HALF
         ok = finite & inside & (first - 0.5 >= ref_e + KNOWN_MARGIN)
-        m = np.zeros(n)
-        for k in range(1, N_MEMBER + 1):
-            m += np.where(k <= self.n_member, values[:, max(first - k, 0)], 0.0)
-        m /= self.n_member
+        # The member's grey: the two pure member pixels before the window (as the outline fit's).
+        m = 0.5 * (values[:, max(first - 1, 0)] + values[:, max(first - 2, 0)])
         wall = ref_values[:, first:last + 1]
         contrast = m[:, None] - wall
         ok &= np.all(self.polarity[:, None] * contrast >= self.params.min_contrast, axis=1)
@@ -701,8 +679,8 @@ class MemberEdges:
 
         Pixel ``j`` of a profile (strip coordinate, member on the low side) sees
         ``w_j + (m - w_j) Phi(e - j)``: ``Phi`` the member's blurred area coverage (see
-        :func:`_coverage`), ``m`` the member's grey (fitted, with up to :data:`N_MEMBER` pure
-        member pixels inside the outline), ``w_j`` the background hidden under pixel ``j``,
+        :func:`_coverage`), ``m`` the member's grey (fitted, with the two pure member
+        pixels inside the outline), ``w_j`` the background hidden under pixel ``j``,
         predicted from the first :data:`N_PREDICT` pure background pixels beyond the
         outline. The pixels the model uses are chosen from the outline estimate itself,
         so on a sharp outline the estimate does not stick to the guess (on a smeared one
@@ -717,8 +695,7 @@ class MemberEdges:
         e = HALF + self.side * (g - centre)
         e, var_e, misfit, contrast, ok = _fine_steps(
             values, e.astype(np.float64), (finite & inside), self.vertical, rows.coef, cols.coef,
-            rows.error, cols.error, mean.astype(np.float64), float(blur), float(self.member_var),
-            self.n_member)
+            rows.error, cols.error, mean.astype(np.float64), float(blur), float(self.member_var))
         ok &= np.isfinite(e) & (np.sign(contrast) == self.polarity)
         edge = np.where(ok, centre + self.side * (e - HALF), np.nan)
         return _Outline(edge, np.where(ok, var_e, np.nan), contrast, np.where(ok, misfit, np.nan))

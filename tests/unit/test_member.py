@@ -110,14 +110,3 @@ def test_outline_moved_onto_background_the_reference_shows_is_located_by_its_are
     shadowed = leading & (edges.line < 40)
     assert shadowed.any() and not np.isfinite(known.edge[shadowed]).any()
     assert np.isfinite(known.edge[leading & (edges.line >= 48)]).any()
-
-
-def test_member_grey_is_fitted_with_pixels_of_the_outlines_own_half():
-    wide_clip = make_clip(seed=6, frames=1)
-    wide = MemberEdges.from_reference(wide_clip.frames[0], wide_clip.mask)
-    assert np.median(wide.n_member[~wide.vertical]) == 6
-    narrow_clip = make_clip(seed=6, frames=1, bar_width=8, mask_margin=2)
-    narrow = MemberEdges.from_reference(narrow_clip.frames[0], narrow_clip.mask)
-    # An 8 px member, about 10 px with its outlines' pixels: 5 px per outline, one of them the
-    # outline's own (more only where the support grew over wall as grey as the paint).
-    assert np.median(narrow.n_member[~narrow.vertical]) <= 4
