@@ -58,6 +58,10 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
         "versions": versions(), "wall_s": time.perf_counter() - start,
     })
     write_json(args.out, clean(metrics))
+    if "unmeasured" in metrics:
+        print(f"{args.scenario}/{args.method}: valid_frac={metrics['valid_frac']:.3f}, unmeasured "
+              f"({metrics['unmeasured']}) -> {args.out}")
+        return
     print(f"{args.scenario}/{args.method}: rmse_mm={metrics['rmse_mm']:.4g} "
           f"max_disp_error_pct={metrics['max_disp_error_pct']:.3g} sync_lag_s={metrics['sync_lag_s']:.5f} -> {args.out}")
 

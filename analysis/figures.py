@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ import numpy as np  # noqa: E402
 from refflow.figures import poi_figure  # noqa: E402
 from refflow.io import atomic_path  # noqa: E402
 
-from .metrics import DEFAULTS, occlusion_spans  # noqa: E402
+from .metrics import DEFAULTS, MIN_COMPARED_FRAMES, occlusion_spans  # noqa: E402
 from .readers import model_modes_hz, read_json, read_sensor, read_track, read_truth, track_mm  # noqa: E402
 from .spectra import alias_frequency, welch_psd  # noqa: E402
 from .sync import align, datum_offset, lowpass  # noqa: E402
@@ -321,6 +322,10 @@ def make_all(*, sensor: str, truth: str, tracks: Sequence[tuple[str, str]], out_
         rows = np.array([pos.get(int(f), -1) for f in tr["frame"]])
         occluded = np.where(rows >= 0, tru["occluded"][np.maximum(rows, 0)], 0)
         valid = (tr["valid"] != 0) & np.isfinite(tr["dx_mm"])
+        if (valid & (occluded == 0)).sum() < MIN_COMPARED_FRAMES:
+            print(f"figures: {name}: {int(valid.sum())} valid frames, not plotted (the method flagged its frames)",
+                  file=sys.stderr)
+            continue
         al = align(sens.time_s, sens.dx_mm, tr["time_s"], tr["dx_mm"], valid=valid & (occluded == 0),
                    cutoff_hz=p["lowpass_hz"], order=int(p["lowpass_order"]), max_lag_s=p["max_lag_s"],
                    highpass_hz=p["sync_highpass_hz"], center_s=nominal)

@@ -143,11 +143,12 @@ def summary_markdown(rows: list[dict[str, Any]]) -> str:
             lines.append("| " + " | ".join([
                 str(row["method"]), _fmt(row.get("max_disp_meas_mm")), _fmt(row.get("max_disp_error_pct"), 3),
                 _fmt(row.get("p2p_first_cycles_error_pct"), 3),
-                _fmt(row.get("rmse_mm")), _fmt(row.get("rmse_px"), 3), _fmt(row.get("valid_frac"), 3),
+                "every frame flagged" if "unmeasured" in row else _fmt(row.get("rmse_mm")),
+                _fmt(row.get("rmse_px"), 3), _fmt(row.get("valid_frac"), 3),
                 _fmt(row.get("rmse_pct_of_max_ref"), 3),
                 _fmt(row.get("drift_mm_per_s"), 3), _fmt(row.get("post_occlusion_offset_mm"), 3) or "-",
                 _fmt(row.get("recovery_time_s"), 3) or "-"]) + " |")
-        ref = group[0].get("max_disp_ref_mm")
+        ref = next((row["max_disp_ref_mm"] for row in group if row.get("max_disp_ref_mm") is not None), None)
         lines.append(f"| Reference displacement sensor | {_fmt(ref)} | - | - | - | - | - | - | - | - | - |")
         lines.append("")
     return "\n".join(lines)

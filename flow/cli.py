@@ -39,6 +39,7 @@ from flow.options import (
     TrackOptions,
 )
 from flow.outputs import check_outputs, claimed
+from flow.quality import MAX_TYPICAL_SIGMA_PX
 from flow.scale import positive
 from refflow.io import versions, write_json
 
@@ -65,7 +66,8 @@ def scale_options(args: argparse.Namespace) -> ScaleOptions:
 
 
 def filter_options(args: argparse.Namespace) -> FilterOptions:
-    return FilterOptions(mode=args.filter, threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold)
+    return FilterOptions(mode=args.filter, threshold_ratio=args.threshold_ratio, mcr_threshold=args.mcr_threshold,
+                         max_typical_sigma_px=args.max_typical_sigma)
 
 
 def track_options(args: argparse.Namespace) -> TrackOptions:
@@ -232,6 +234,10 @@ def _add_measure_options(p: argparse.ArgumentParser, *, out_required: bool) -> N
                    help="eq. 10 threshold as a fraction of the median POI peak |d| (default 0.5)")
     p.add_argument("--mcr-threshold", type=float, default=0.5,
                    help="eq. 11 threshold on the mean cross-correlation (default 0.5)")
+    p.add_argument("--max-typical-sigma", type=float, default=MAX_TYPICAL_SIGMA_PX, metavar="PX",
+                   help="flag every frame when the typical frame's standard uncertainty exceeds PX on both "
+                        f"axes (a video compressed past sub-pixel detail; default {MAX_TYPICAL_SIGMA_PX}, "
+                        "0: never; methods that report the images' uncertainty)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from flow.camfiles import companion_files
+from flow.quality import MAX_TYPICAL_SIGMA_PX
 from refflow.io import versions
 
 
@@ -66,6 +67,7 @@ class FilterOptions:
     mode: str | None = None  # "paper", "median", "none"
     threshold_ratio: float = 0.5
     mcr_threshold: float = 0.5
+    max_typical_sigma_px: float = MAX_TYPICAL_SIGMA_PX  # 0: never flag a clip for its precision
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ the user should see go to stderr as they happen.
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -125,6 +126,9 @@ def check_filter_options(options: FilterOptions) -> None:
         raise InputError(f"--threshold-ratio {options.threshold_ratio} is negative: pass a fraction >= 0")
     if not -1 <= options.mcr_threshold <= 1:
         raise InputError(f"--mcr-threshold {options.mcr_threshold} is outside [-1, 1]: it is a correlation")
+    if not (math.isfinite(options.max_typical_sigma_px) and options.max_typical_sigma_px >= 0):
+        raise InputError(f"--max-typical-sigma {options.max_typical_sigma_px} is not a number >= 0: pass pixels "
+                         "(0 never flags a clip for its precision)")
 
 
 def _note(notes: list[str], text: str) -> None:

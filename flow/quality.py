@@ -4,7 +4,9 @@ A frame is flagged invalid when its photometric residual is far above its baseli
 view blocked), when no POI was measured, or when the POIs that survive the eq. 10-12
 filters scatter far more than usual; :func:`measure` alternates the flags and the
 filtering until they settle, then reports the averaged displacement, each frame's
-consistent fraction of POIs and the uncertainty of the mean.
+consistent fraction of POIs and the uncertainty of the mean. A clip whose typical frame the
+images cannot resolve to a fraction of a pixel (:func:`typical_sigma`) has every frame
+flagged.
 """
 
 from __future__ import annotations
@@ -45,6 +47,13 @@ SPREAD_FLOOR_PX = 1.5
 BAND_RATIO = 3.0
 BAND_FLOOR_PX = 0.5
 BAND_RELATIVE = 0.25
+# A clip whose typical frame has a standard uncertainty above MAX_TYPICAL_SIGMA_PX px on both
+# axes (the images' own uncertainty, :func:`typical_sigma`) holds no sub-pixel reading: a
+# video compressed until the outlines are smeared into blocks. Measured (deepflow / dis,
+# defaults): every other clip we have reads 0.002-0.25 px (the bench's CRF 30 clip: 0.25 /
+# 0.53, where dis's RMSE is 1.26 px); the workbench's 0.01 bit-per-pixel clip 0.47 / 0.54,
+# with errors of about 1 px.
+MAX_TYPICAL_SIGMA_PX = 0.35
 
 
 def flag_invalid(residual: np.ndarray, *, k_mad: float = RESIDUAL_K_MAD, ratio: float = RESIDUAL_RATIO,
@@ -145,7 +154,8 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
             residual_k_mad: float = RESIDUAL_K_MAD, residual_floor: float = RESIDUAL_FLOOR,
             spread_ratio: float = SPREAD_RATIO, spread_floor_px: float = SPREAD_FLOOR_PX,
             check_coherence: bool = True, max_rounds: int = 3, band_ratio: float = BAND_RATIO,
-            band_floor_px: float = BAND_FLOOR_PX, band_relative: float = BAND_RELATIVE) -> Measurement:
+            band_floor_px: float = BAND_FLOOR_PX, band_relative: float = BAND_RELATIVE,
+            max_typical_sigma_px: float = MAX_TYPICAL_SIGMA_PX) -> Measurement:
     """Quality flags, eq. (10)-(12) filtering and averaging of a run's tracks.
 
     A frame is invalid when its photometric residual is far above its baseline
@@ -160,6 +170,10 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
     ``poi_kept_frac`` is, per frame, the :func:`consistent_fraction` of the
     surviving POIs with a band of ``max(band_ratio * median spread,
     band_floor_px)``.
+
+    Where the method reports the images' own uncertainty (``tracks.sigma_dx``), a clip whose
+    :func:`typical_sigma` exceeds ``max_typical_sigma_px`` (0: never) has every frame flagged
+    (``Measurement.unresolved``): its readings are not sub-pixel measurements.
     """
     photometric, threshold = flag_invalid(tracks.residual, k_mad=residual_k_mad, ratio=residual_ratio,
                                           floor=residual_floor)
@@ -186,14 +200,36 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
     band = max(band_ratio * float(np.median(typical)) if typical.size else 0.0, band_floor_px)
     kept_frac = _per_frame(tracks, filtered.kept, lambda bx, by: consistent_fraction(
         bx, by, band_px=band, relative=band_relative))
+    typical, unresolved = float("nan"), False
     if tracks.sigma_dx is not None and tracks.sigma_dy is not None:
         sigma_dx = with_reference_term(np.asarray(tracks.sigma_dx, float), valid)
         sigma_dy = with_reference_term(np.asarray(tracks.sigma_dy, float), valid)
+        typical = typical_sigma(sigma_dx, sigma_dy, valid)
+        unresolved = bool(max_typical_sigma_px > 0 and typical > max_typical_sigma_px)
+        if unresolved:
+            valid = np.zeros_like(valid)
     else:
         # Features followed on their own (KLT): the standard error of their mean.
         sigma_dx = _per_frame(tracks, filtered.kept, lambda bx, by: _standard_error(bx))
         sigma_dy = _per_frame(tracks, filtered.kept, lambda bx, by: _standard_error(by))
-    return Measurement(tracks, filtered, valid, kept_frac, spread, threshold, band, sigma_dx, sigma_dy)
+    return Measurement(tracks, filtered, valid, kept_frac, spread, threshold, band, sigma_dx, sigma_dy,
+                       typical_sigma_px=typical, unresolved=unresolved)
+
+
+def typical_sigma(sigma_dx: np.ndarray, sigma_dy: np.ndarray, valid: np.ndarray) -> float:
+    """The images' precision over a clip: the median standard uncertainty of the valid frames
+    on the better-measured axis (px; NaN without any).
+
+    The better axis, because a member's outline fixes only the motion across it (along a
+    vertical member dy is poorly determined on every clip). The median, because a single
+    frame's uncertainty also grows where the structure deforms within the mask (on Tacoma
+    up to 7 px in the largest twists, 0.10 px typical): what the codec or the light took
+    from the images shows in every frame.
+    """
+    valid = np.asarray(valid, bool)
+    medians = [float(np.median(s[valid & np.isfinite(s)])) for s in (sigma_dx, sigma_dy)
+               if (valid & np.isfinite(s)).any()]
+    return min(medians) if medians else float("nan")
 
 
 def with_reference_term(sigma: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -117,3 +117,5 @@ class Measurement:
     consistency_band_px: float = float("nan")
     sigma_dx: np.ndarray | None = None  # (F,) px, standard uncertainty of dx
     sigma_dy: np.ndarray | None = None
+    typical_sigma_px: float = float("nan")  # :func:`flow.quality.typical_sigma`
+    unresolved: bool = False  # every frame flagged: the typical frame is not sub-pixel

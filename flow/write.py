@@ -7,6 +7,7 @@ CSV last), so a failure or Ctrl-C leaves none of them.
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -36,11 +37,20 @@ def measure_regions(tracks: Any, filtering: FilterOptions, sparse: bool) -> tupl
                                        average="median" if mode == "median" else "mean",
                                        threshold_ratio=filtering.threshold_ratio,
                                        mcr_threshold=filtering.mcr_threshold,
+                                       max_typical_sigma_px=filtering.max_typical_sigma_px,
                                        # KLT mixes background and structure features by design (the
                                        # paper's baseline): their disagreement is no sign of a blocked view
                                        check_coherence=not sparse))
                for label in tracks.labels()]
     return mode, results
+
+
+def unresolved_note(result: Any, limit_px: float) -> str:
+    """The note (and stderr warning) of a region whose every frame was flagged for its precision."""
+    return (f"the typical frame's standard uncertainty is {result.typical_sigma_px:.2f} px, above the "
+            f"{limit_px:g} px a sub-pixel reading needs (heavy compression, noise or too little "
+            "texture): every frame is flagged valid=0; record at a higher bit rate, or pass "
+            "--max-typical-sigma 0 to keep the readings")
 
 
 def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list[tuple[str, Path]],
@@ -58,6 +68,12 @@ def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list
     sidecar_text = ""
     if outputs.csv:
         mode, results = measure_regions(tracks, filtering, run.method_kind == "sparse")
+        multi = len(results) > 1
+        for label, result in results:
+            if result.unresolved:
+                note = (f"region {label}: " if multi else "") + unresolved_note(result, filtering.max_typical_sigma_px)
+                notes = notes + [note]
+                print(f"refflow: warning: {note}", file=sys.stderr)
         columns = trackcsv.columns(regions=tracks.region is not None)
         # Serialised first: a bad value fails before any file exists.
         sidecar_text = json_text(sidecar(run, filtering, notes, results, scale, mode, columns, started))
@@ -99,7 +115,8 @@ def _quality(result: Any) -> dict[str, Any]:
     n_valid = int(result.valid.sum())
     return {"frames_valid": n_valid, "frames_invalid": int(len(result.valid) - n_valid),
             "residual_threshold": finite_or_none(result.residual_threshold),
-            "consistency_band_px": finite_or_none(result.consistency_band_px)}
+            "consistency_band_px": finite_or_none(result.consistency_band_px),
+            "typical_sigma_px": finite_or_none(result.typical_sigma_px), "unresolved": bool(result.unresolved)}
 
 
 def sidecar(run: RunInfo, filtering: FilterOptions, notes: list[str], results: list[tuple[int, Any]],
@@ -114,7 +131,8 @@ def sidecar(run: RunInfo, filtering: FilterOptions, notes: list[str], results: l
         "scale": {"mm_per_px": finite_or_none(scale.mm_per_px), "source": scale.source},
         "filter": {"mode": filter_mode, "threshold_ratio": filtering.threshold_ratio,
                    "threshold_px": None if multi else first.filtered.threshold_px,
-                   "mcr_threshold": filtering.mcr_threshold},
+                   "mcr_threshold": filtering.mcr_threshold,
+                   "max_typical_sigma_px": filtering.max_typical_sigma_px},
         "quality": ({"frames_valid": int(every.sum()), "frames_invalid": int(len(every) - every.sum()),
                      "counted": "frames valid in every region (each region's own: see regions)"}
                     if multi else _quality(first)),

@@ -30,6 +30,7 @@ from typing import Any
 
 from flow.io import InputError
 from flow.jsonfiles import load_json
+from flow.quality import MAX_TYPICAL_SIGMA_PX
 
 FORMAT = "refflow-project/1"
 
@@ -44,6 +45,7 @@ OPTIONS: dict[str, tuple[str, type, Any]] = {
     "filter": ("--filter", str, None),
     "threshold_ratio": ("--threshold-ratio", float, 0.5),
     "mcr_threshold": ("--mcr-threshold", float, 0.5),
+    "max_typical_sigma": ("--max-typical-sigma", float, MAX_TYPICAL_SIGMA_PX),
     "background_model": ("--background-model", str, "affine"),
     "jobs": ("--jobs", int, None),
 }

@@ -255,3 +255,33 @@ def test_klt_feature_gains_find_the_static_corners(scenario, tmp_path):
     written = fig_klt_features(raw, truth, None, None, 1 / 2.8, tmp_path)
     assert {p.name for p in written} == {"fig11_klt_features.png", "fig11_klt_features.svg"}
     assert all(p.stat().st_size > 1000 for p in written)
+
+
+def test_a_method_that_flagged_every_frame_is_reported_unmeasured(scenario, metrics, tmp_path):
+    """A run whose frames are all valid=0 (refflow's precision check on a video compressed past
+    its detail) is a result, not a crash: its valid share, no error metrics, and the summary
+    says so beside the methods that did measure; the figures leave it out."""
+    rows = list(csv.DictReader(Path(scenario["proposed"]).open()))
+    flagged = tmp_path / "flagged.csv"
+    with flagged.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({**row, "dx_px": "nan", "dy_px": "nan", "dx_mm": "nan", "dy_mm": "nan", "valid": 0})
+    out = tmp_path / "flagged.json"
+    assert _evaluate({**scenario, "flagged": flagged}, "flagged", out) == 0
+    data = json.loads(out.read_text())
+    assert data["valid_frac"] == 0 and data["compared_frames"] == 0 and "rmse_mm" not in data
+    assert "at least 8" in data["unmeasured"]
+    md = tmp_path / "summary.md"
+    assert main(["summary", str(out), str(metrics["klt"]), "--out", str(tmp_path / "s.csv"),
+                 "--markdown", str(md)]) == 0
+    lines = md.read_text().splitlines()
+    assert any(line.startswith("| flagged | ") and "every frame flagged" in line and "| 0 |" in line for line in lines)
+    sensor = next(line for line in lines if line.startswith("| Reference displacement sensor"))
+    assert sensor.split("|")[2].strip() == f"{json.loads(metrics['klt'].read_text())['max_disp_ref_mm']:.4g}"
+    figs = tmp_path / "figs"
+    assert main(["figures", "--sensor", str(scenario["sensor"]), "--sim-json", str(scenario["sim_json"]),
+                 "--truth", str(scenario["truth"]), "--render-json", str(scenario["render_json"]),
+                 "--track", str(flagged), "--track", str(scenario["klt"]), "--out-dir", str(figs)]) == 0
+    assert (figs / "fig8_time_histories.png").is_file()

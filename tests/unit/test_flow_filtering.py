@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -217,3 +219,46 @@ def test_uncertainty_carries_the_reference_frames_own_error() -> None:
     total = with_reference_term(own, valid)
     assert np.isclose(total[200], 0.03 * np.sqrt(2)) and np.isnan(total[150])
     assert np.isclose(total[0], np.hypot(5.0, 0.03))
+
+
+def _tracks_with_sigma(sigma_dx: float, sigma_dy: float, n_frames: int = 120, seed: int = 4):
+    rng = np.random.default_rng(seed)
+    motion = 3.0 * np.sin(np.arange(n_frames) / 5.0)
+    dx = motion[:, None] + 0.05 * rng.standard_normal((n_frames, 40))
+    tracks = _tracks(dx, 0.05 * rng.standard_normal((n_frames, 40)))
+    return dataclasses.replace(tracks, sigma_dx=np.full(n_frames, sigma_dx) * rng.uniform(0.8, 1.2, n_frames),
+                               sigma_dy=np.full(n_frames, sigma_dy) * rng.uniform(0.8, 1.2, n_frames))
+
+
+@pytest.mark.parametrize("sigma_dx, sigma_dy, unresolved", [
+    (0.05, 0.6, False),   # a vertical member: dy is poorly fixed on every clip, dx carries the reading
+    (0.6, 0.05, False),   # a horizontal one
+    (0.17, 0.4, False),   # the bench's CRF 30 clip with deepflow: 0.25 px typical with the reference's term
+    (0.33, 0.5, True),    # the workbench's 0.01 bit-per-pixel clip: 0.47 px, errors of about 1 px
+    (0.4, 0.38, True),    # dis on the CRF 30 clip (RMSE 1.26 px): 0.53 px
+])
+def test_a_clip_the_images_cannot_resolve_has_every_frame_flagged(sigma_dx, sigma_dy, unresolved) -> None:
+    """The typical frame's own uncertainty (better axis, the reference's term in) above 0.35 px:
+    not a sub-pixel reading, so every frame is flagged; below, the flags are the per-frame ones."""
+    from flow.quality import MAX_TYPICAL_SIGMA_PX, measure
+
+    result = measure(_tracks_with_sigma(sigma_dx, sigma_dy))
+    typical = np.sqrt(2) * min(sigma_dx, sigma_dy)
+    assert result.typical_sigma_px == pytest.approx(typical, rel=0.05)
+    assert result.unresolved is unresolved and unresolved == (typical > MAX_TYPICAL_SIGMA_PX)
+    assert bool(result.valid.all()) is not unresolved and bool(result.valid.any()) is not unresolved
+    # 0 turns the check off; a looser limit keeps the frames
+    assert measure(_tracks_with_sigma(sigma_dx, sigma_dy), max_typical_sigma_px=0).valid.all()
+    assert measure(_tracks_with_sigma(sigma_dx, sigma_dy), max_typical_sigma_px=1.0).valid.all()
+
+
+def test_features_followed_on_their_own_are_never_flagged_for_precision() -> None:
+    """KLT's sigma is its features' standard error (background features in the mean by design),
+    not the images' uncertainty: the precision check does not apply."""
+    from flow.quality import measure
+
+    rng = np.random.default_rng(5)
+    dx = np.where(np.arange(40) < 20, 0.0, 8.0 * np.sin(np.arange(120) / 5.0)[:, None])
+    result = measure(_tracks(dx + 0.01 * rng.standard_normal(dx.shape), np.zeros_like(dx)), filter_enabled=False,
+                     check_coherence=False)
+    assert np.isnan(result.typical_sigma_px) and not result.unresolved and result.valid.all()
