@@ -92,10 +92,13 @@ def run_method(method: str, folder: Path, meta: dict, out: Path) -> dict:
     wall = time.perf_counter() - started
     if proc.returncode != 0:
         return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    if sidecar["quality"]["frames_valid"] == 0:  # nothing for the scorer: the tool flagged every frame
+        typical = sidecar["quality"].get("typical_sigma_px")
+        return {"flagged": "every frame flagged valid=0" + (f" (typical sigma {typical:.2f} px)" if typical else "")}
     score = subprocess.run([sys.executable, str(BENCH / "score.py"), str(folder), str(out)],
                            capture_output=True, text=True, check=True)
     result = json.loads(score.stdout)
-    sidecar = json.loads(out.with_suffix(".json").read_text())
     n_frames = sidecar["input"]["frames_measured"]
     result["s_per_frame"] = sidecar["timings"]["frames_s"] / max(n_frames, 1)
     result["wall_s"] = wall
@@ -168,6 +171,9 @@ def table(results: dict, floors: dict, moto: dict, methods: list[str]) -> str:
             if "error" in r:
                 lines.append(f"| {head} | {name} | failed: {r['error']} | | | | | | | |")
                 continue
+            if "flagged" in r:
+                lines.append(f"| {head} | {name} | {r['flagged']} | | | 0.000 | | | | |")
+                continue
             rmse = fmt(r["rmse_px"]) + (" **best**" if best is not None and r["rmse_px"] == best else "")
             lines.append(f"| {head} | {name} | {rmse} | {fmt(r['slope'], 4)} | {fmt(r['max_abs_err_px'])} | "
                          f"{fmt(r['measured_fraction'], 3)} | {fmt(r.get('coverage_2sigma'), 2)} | "
@@ -206,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
                 r = results[clip][name]
                 print(f"{clip:14s} {name:16s} " + (f"rmse {r['rmse_px']:.3f} slope {r['slope']:.4f} "
                       f"cov {r['coverage_2sigma']:.2f} {r['s_per_frame']:.3f} s/frame" if "rmse_px" in r
-                      else r["error"]), file=sys.stderr, flush=True)
+                      else r.get("error") or r["flagged"]), file=sys.stderr, flush=True)
     moto = {} if args.no_motorcycle else motorcycle(methods)
     text = table(results, floors, moto, methods)
     print(text)
