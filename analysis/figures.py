@@ -322,9 +322,9 @@ def make_all(*, sensor: str, truth: str, tracks: Sequence[tuple[str, str]], out_
         rows = np.array([pos.get(int(f), -1) for f in tr["frame"]])
         occluded = np.where(rows >= 0, tru["occluded"][np.maximum(rows, 0)], 0)
         valid = (tr["valid"] != 0) & np.isfinite(tr["dx_mm"])
-        if (valid & (occluded == 0)).sum() < MIN_COMPARED_FRAMES:
-            print(f"figures: {name}: {int(valid.sum())} valid frames, not plotted (the method flagged its frames)",
-                  file=sys.stderr)
+        usable = int((valid & (occluded == 0)).sum())
+        if usable < MIN_COMPARED_FRAMES:
+            print(f"figures: {name}: {usable} valid frames outside occlusions, not plotted", file=sys.stderr)
             continue
         al = align(sens.time_s, sens.dx_mm, tr["time_s"], tr["dx_mm"], valid=valid & (occluded == 0),
                    cutoff_hz=p["lowpass_hz"], order=int(p["lowpass_order"]), max_lag_s=p["max_lag_s"],

@@ -46,6 +46,11 @@ def _fmt(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
+def _unmeasured(row: dict[str, Any]) -> str:
+    """The RMSE cell of a run without enough valid frames to compare."""
+    return "every frame flagged" if not row.get("valid_frac") else "unmeasured (too few valid frames)"
+
+
 def write_summary_csv(rows: list[dict[str, Any]], out: str | os.PathLike[str]) -> None:
     with atomic_path(out) as tmp, tmp.open("w", newline="") as handle:
         writer = csv.writer(handle)
@@ -143,7 +148,7 @@ def summary_markdown(rows: list[dict[str, Any]]) -> str:
             lines.append("| " + " | ".join([
                 str(row["method"]), _fmt(row.get("max_disp_meas_mm")), _fmt(row.get("max_disp_error_pct"), 3),
                 _fmt(row.get("p2p_first_cycles_error_pct"), 3),
-                "every frame flagged" if "unmeasured" in row else _fmt(row.get("rmse_mm")),
+                _unmeasured(row) if "unmeasured" in row else _fmt(row.get("rmse_mm")),
                 _fmt(row.get("rmse_px"), 3), _fmt(row.get("valid_frac"), 3),
                 _fmt(row.get("rmse_pct_of_max_ref"), 3),
                 _fmt(row.get("drift_mm_per_s"), 3), _fmt(row.get("post_occlusion_offset_mm"), 3) or "-",

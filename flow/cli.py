@@ -186,6 +186,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
         if label in series:
             label = f"{label} ({Path(path).stem})"
         series[label] = (data["time_s"], data[f"dx_{units}"], data[f"dy_{units}"])
+        if not np.isfinite(series[label][1]).any():
+            print(f"refflow plot: note: {label} has no valid frame (see its sidecar's notes)", file=sys.stderr)
     summary = spectrum_figure(series, args.out, units=units, title=args.title or "", min_hz=args.min_hz)
     for label, peaks in summary.items():
         found = ", ".join(f"{axis} {hz:.3f} Hz" for axis, hz in peaks.items() if axis != "main" and hz is not None)

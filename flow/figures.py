@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -130,9 +131,12 @@ def spectrum_figure(series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
     fig, axes = plt.subplots(3, 1, figsize=(9, 8))
     summary: dict[str, dict[str, Any]] = {}
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    _, first_dx, first_dy = next(iter(series.values()))
-    with np.errstate(all="ignore"):
-        main = "dx" if np.nanstd(first_dx) >= np.nanstd(first_dy) else "dy"
+    # the first series that has a value (a run whose every frame was flagged has none)
+    _, first_dx, first_dy = next((s for s in series.values() if np.isfinite(s[1]).any() or np.isfinite(s[2]).any()),
+                                 next(iter(series.values())))
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        main = "dx" if not np.nanstd(first_dy) > np.nanstd(first_dx) else "dy"
     for i, (label, (time_s, dx, dy)) in enumerate(series.items()):
         colour = colours[i % len(colours)]
         axes[0].plot(time_s, dx, lw=1.1, color=colour, label=label)

@@ -200,12 +200,12 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
     band = max(band_ratio * float(np.median(typical)) if typical.size else 0.0, band_floor_px)
     kept_frac = _per_frame(tracks, filtered.kept, lambda bx, by: consistent_fraction(
         bx, by, band_px=band, relative=band_relative))
-    typical, unresolved = float("nan"), False
+    precision_px, unresolved = float("nan"), False
     if tracks.sigma_dx is not None and tracks.sigma_dy is not None:
         sigma_dx = with_reference_term(np.asarray(tracks.sigma_dx, float), valid)
         sigma_dy = with_reference_term(np.asarray(tracks.sigma_dy, float), valid)
-        typical = typical_sigma(sigma_dx, sigma_dy, valid)
-        unresolved = bool(max_typical_sigma_px > 0 and typical > max_typical_sigma_px)
+        precision_px = typical_sigma(sigma_dx, sigma_dy, valid)
+        unresolved = bool(max_typical_sigma_px > 0 and precision_px > max_typical_sigma_px)
         if unresolved:
             valid = np.zeros_like(valid)
     else:
@@ -213,7 +213,7 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
         sigma_dx = _per_frame(tracks, filtered.kept, lambda bx, by: _standard_error(bx))
         sigma_dy = _per_frame(tracks, filtered.kept, lambda bx, by: _standard_error(by))
     return Measurement(tracks, filtered, valid, kept_frac, spread, threshold, band, sigma_dx, sigma_dy,
-                       typical_sigma_px=typical, unresolved=unresolved)
+                       typical_sigma_px=precision_px, unresolved=unresolved)
 
 
 def typical_sigma(sigma_dx: np.ndarray, sigma_dy: np.ndarray, valid: np.ndarray) -> float:

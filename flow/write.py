@@ -45,10 +45,10 @@ def measure_regions(tracks: Any, filtering: FilterOptions, sparse: bool) -> tupl
     return mode, results
 
 
-def unresolved_note(result: Any, limit_px: float) -> str:
+def unresolved_note(result: Any, filtering: FilterOptions) -> str:
     """The note (and stderr warning) of a region whose every frame was flagged for its precision."""
     return (f"the typical frame's standard uncertainty is {result.typical_sigma_px:.2f} px, above the "
-            f"{limit_px:g} px a sub-pixel reading needs (heavy compression, noise or too little "
+            f"{filtering.max_typical_sigma_px:g} px a sub-pixel reading needs (heavy compression, noise or too little "
             "texture): every frame is flagged valid=0; record at a higher bit rate, or pass "
             "--max-typical-sigma 0 to keep the readings")
 
@@ -68,15 +68,15 @@ def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list
     sidecar_text = ""
     if outputs.csv:
         mode, results = measure_regions(tracks, filtering, run.method_kind == "sparse")
-        multi = len(results) > 1
-        for label, result in results:
-            if result.unresolved:
-                note = (f"region {label}: " if multi else "") + unresolved_note(result, filtering.max_typical_sigma_px)
-                notes = notes + [note]
-                print(f"refflow: warning: {note}", file=sys.stderr)
+        # This measurement's own verdict: the sidecar's notes, never a raw-tracks part's (a
+        # merge of parts measures again, maybe with another limit).
+        flagged = [(f"region {label}: " if len(results) > 1 else "") + unresolved_note(result, filtering)
+                   for label, result in results if result.unresolved]
+        for note in flagged:
+            print(f"{run.tool}: warning: {note}", file=sys.stderr)
         columns = trackcsv.columns(regions=tracks.region is not None)
         # Serialised first: a bad value fails before any file exists.
-        sidecar_text = json_text(sidecar(run, filtering, notes, results, scale, mode, columns, started))
+        sidecar_text = json_text(sidecar(run, filtering, notes + flagged, results, scale, mode, columns, started))
     with atomic_paths(*output_names(outputs, inputs)) as temporaries:
         pending = list(temporaries)
         if outputs.raw_tracks:
@@ -134,7 +134,8 @@ def sidecar(run: RunInfo, filtering: FilterOptions, notes: list[str], results: l
                    "mcr_threshold": filtering.mcr_threshold,
                    "max_typical_sigma_px": filtering.max_typical_sigma_px},
         "quality": ({"frames_valid": int(every.sum()), "frames_invalid": int(len(every) - every.sum()),
-                     "counted": "frames valid in every region (each region's own: see regions)"}
+                     "counted": "frames valid in every region (each region's own: see regions)",
+                     "unresolved_regions": [int(label) for label, result in results if result.unresolved]}
                     if multi else _quality(first)),
         "units": trackcsv.units(regions=multi),
         "columns": columns,

@@ -71,3 +71,25 @@ def test_a_bad_limit_is_refused_in_one_line(clip, tmp_path, capsys, value) -> No
                  "--no-progress", "--max-typical-sigma", value]) == 2
     err = capsys.readouterr().err.strip()
     assert "--max-typical-sigma" in err and len(err.splitlines()) == 1 and not out.exists()
+
+
+def test_merge_measures_again_and_plot_says_what_it_lacks(clip, tmp_path, capsys) -> None:
+    """The verdict is the measurement's own: a part's raw tracks carry no "flagged" note, so a
+    merge with another limit is not contradicted by its part; `refflow plot` of a flagged CSV
+    beside a measured one says so and takes the spectra's axis from the one that has values."""
+    part, flagged = tmp_path / "part.npz", tmp_path / "flagged.csv"
+    assert main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--mm-per-px", "1", "--method", "dis",
+                 "--out", str(flagged), "--raw-tracks", str(part), "--no-progress"]) == 0
+    for limit, unresolved in (("0", False), ("0.35", True)):
+        merged = tmp_path / f"merged{limit}.csv"
+        assert main(["merge", str(part), "--mm-per-px", "1", "--max-typical-sigma", limit, "--out", str(merged)]) == 0
+        meta = json.loads(merged.with_suffix(".json").read_text())
+        notes = [n for n in meta["notes"] if "every frame is flagged" in n]
+        assert meta["quality"]["unresolved"] is unresolved and len(notes) == int(unresolved)
+    assert "refflow merge: warning: the typical frame's" in capsys.readouterr().err
+    measured = tmp_path / "measured.csv"
+    _track(clip, measured)
+    capsys.readouterr()
+    assert main(["plot", str(flagged), str(measured), "--units", "px", "--out", str(tmp_path / "p.png")]) == 0
+    out = capsys.readouterr()
+    assert "has no valid frame" in out.err and "spectra plotted: dx" in out.out

@@ -257,7 +257,7 @@ def test_klt_feature_gains_find_the_static_corners(scenario, tmp_path):
     assert all(p.stat().st_size > 1000 for p in written)
 
 
-def test_a_method_that_flagged_every_frame_is_reported_unmeasured(scenario, metrics, tmp_path):
+def test_a_method_that_flagged_every_frame_is_reported_unmeasured(scenario, metrics, tmp_path, capsys):
     """A run whose frames are all valid=0 (refflow's precision check on a video compressed past
     its detail) is a result, not a crash: its valid share, no error metrics, and the summary
     says so beside the methods that did measure; the figures leave it out."""
@@ -285,3 +285,4 @@ def test_a_method_that_flagged_every_frame_is_reported_unmeasured(scenario, metr
                  "--truth", str(scenario["truth"]), "--render-json", str(scenario["render_json"]),
                  "--track", str(flagged), "--track", str(scenario["klt"]), "--out-dir", str(figs)]) == 0
     assert (figs / "fig8_time_histories.png").is_file()
+    assert "flagged: 0 valid frames outside occlusions, not plotted" in capsys.readouterr().err
