@@ -18,6 +18,7 @@ import pytest
 
 from flow.cli import main
 from flow.figures import read_measurements
+from flow.quality import MAX_TYPICAL_SIGMA_PX
 
 ROOT = Path(__file__).resolve().parents[2]
 CLIP = ROOT / ".." / "shared" / "data" / "tacoma_bridge.mp4"
@@ -81,10 +82,26 @@ def test_tacoma_script_writes_the_figures(tmp_path) -> None:
     assert (tmp_path / "tacoma_displacement.png").is_file() and (tmp_path / "tacoma_pois.png").is_file()
     f_dense, f_klt = dominant(result.stdout, "deepflow", "dy"), dominant(result.stdout, "klt", "dy")
     assert BAND_HZ[0] < f_dense < BAND_HZ[1] and abs(f_dense - f_klt) < 0.03, result.stdout
-    # The deck at four places in one run: the near curb (regions 1-3) and the far deck edge
-    # (region 4) swing at the same frequency, the far edge against the near one: the deck twists.
+    # The deck at four places in one run. With the defaults deepflow's typical uncertainty on
+    # the near curb's pieces (regions 1-3) is 1-2 px: every frame of a region above the 0.35 px
+    # limit is flagged, with a warning naming it, and only such regions; the far deck edge
+    # (region 4) is measured. Kept anyway (merge --max-typical-sigma 0, what the figure shows),
+    # the four swing at the deck's frequency, the far edge against the near one: the deck twists.
     assert (tmp_path / "tacoma_regions.png").is_file() and (tmp_path / "tacoma_regions_pois.png").is_file()
-    regions = read_measurements(tmp_path / "data" / "regions.csv")
+    defaults = read_measurements(tmp_path / "data" / "regions.csv")
+    sidecar = json.loads((tmp_path / "data" / "regions.json").read_text())
+    unresolved = sidecar["quality"].get("unresolved_regions", [])
+    assert 4 not in unresolved and len(unresolved) >= 1, sidecar["quality"]
+    for region, entry in zip(defaults, sidecar["regions"], strict=True):
+        flagged = region["region"] in unresolved
+        assert entry["unresolved"] == flagged
+        assert (entry["typical_sigma_px"] > MAX_TYPICAL_SIGMA_PX) == flagged, entry
+        if flagged:  # invalid frames read as NaN
+            assert not np.isfinite(region["dy_px"]).any()
+            assert f"region {region['region']}: the typical frame's standard uncertainty" in result.stderr
+        else:
+            assert np.isfinite(region["dy_px"]).mean() > 0.9
+    regions = read_measurements(tmp_path / "data" / "regions_kept.csv")
     assert [r["region"] for r in regions] == [1, 2, 3, 4]
     for label in (1, 2, 3, 4):
         assert BAND_HZ[0] < dominant(result.stdout, f"deepflow region {label}", "dy") < BAND_HZ[1], result.stdout
