@@ -152,8 +152,12 @@ def _scale(value: Any) -> dict[str, Any] | None:
         return None
     if not isinstance(value, dict):
         raise InputError("scale needs {'mm_per_px': S} or {'known_length_mm': L, 'between_px': [X1, Y1, X2, Y2]}")
-    if value.get("mm_per_px") not in (None, ""):
-        return {"mm_per_px": _number(value["mm_per_px"], "--mm-per-px", float)}
+    mm_per_px = value.get("mm_per_px")
+    if mm_per_px not in (None, "") and not (isinstance(mm_per_px, str) and not mm_per_px.strip()):
+        return {"mm_per_px": _number(mm_per_px, "--mm-per-px", float)}
+    if "mm_per_px" in value:  # chosen, then left empty: a run in pixels would be a silent surprise
+        raise InputError("mm per pixel is empty: type the scale, or choose 'none (pixels only)' to measure "
+                         "in pixels")
     if value.get("known_length_mm") in (None, "") and not value.get("between_px"):
         return None
     if value.get("known_length_mm") in (None, "") or not value.get("between_px"):
@@ -298,8 +302,13 @@ def track_argv(path: str | Path) -> list[str]:
     missing or malformed.
     """
     path = Path(path)
-    project = load_project(path)
-    base = path.resolve().parent
+    return track_argv_of(load_project(path), path.resolve().parent)
+
+
+def track_argv_of(project: dict[str, Any], base: str | Path) -> list[str]:
+    """:func:`track_argv` of a checked ``project`` (as :func:`from_page` or :func:`load_project`
+    return it) whose file is, or will be, in the folder ``base``."""
+    base = Path(base)
     argv = ["track", *_input_argv(project, base, POIS_OPTIONS)]
     if project.get("background"):
         mask = project["background"]["mask"]
@@ -335,6 +344,22 @@ def pois_argv(path: str | Path, out_png: str | Path) -> list[str]:
 def command_line(argv: Sequence[str]) -> str:
     """The shell command of a ``refflow`` argument list."""
     return "refflow " + shlex.join(argv)
+
+
+def command_groups(argv: Sequence[str]) -> list[str]:
+    """:func:`command_line` in pieces that belong together: the program and subcommand, each
+    positional argument, each option with its value. Joined by spaces they are the command line;
+    a page wraps the line between pieces, never inside ``--roi 0,110,200,110``."""
+    groups = [f"refflow {shlex.quote(argv[0])}"] if argv else ["refflow"]
+    option_open = False  # the last group is an option still waiting for its value
+    for item in argv[1:]:
+        if option_open and not item.startswith("-"):
+            groups[-1] += " " + shlex.quote(item)
+            option_open = False
+        else:
+            groups.append(shlex.quote(item))
+            option_open = item.startswith("--") and "=" not in item
+    return groups
 
 
 PROJECT_HELP = ("a project JSON saved by `refflow gui`: its video, ROI, mask, scale, method and options "

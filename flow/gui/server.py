@@ -10,8 +10,13 @@ API (JSON bodies; errors are ``{"error": one line}`` with a 4xx status):
 ``GET /api/frame?i=N``            frame N as a JPEG (grey, as measured; decoded on demand)
 ``POST /api/scale``               mm per pixel of a known length between two clicked points
 ``POST /api/project``             save the project JSON and its mask PNGs; the command lines
-``POST /api/pois``                save, then ``refflow pois``: the POIs next to KLT's corners
+``POST /api/pois``                ``refflow pois`` on the project (not saved): the POIs next to KLT's corners
 ``POST /api/run``, ``GET /api/run``, ``POST /api/cancel``    run ``refflow track``; progress
+
+Every save, POI figure and run is an attempt with a number (``attempt``, in its replies and
+errors, and in every status of a run, with the run's command lines), so the page shows one
+attempt's state at a time. A run's project JSON and masks are staged in a hidden folder and
+replace the saved ones only when the run succeeds.
 ``GET /api/result?name=RUN``      the run's time history and amplitude spectra
 ``GET /api/file?name=FILE``       a file of the output folder (CSV, sidecar, project, PNG)
 """
@@ -22,11 +27,14 @@ import json
 import math
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
@@ -125,10 +133,19 @@ class Frames:
 
 
 class Job:
-    """One ``refflow track`` child process, its progress and its last words."""
+    """One ``refflow track`` child process (attempt number ``attempt``), its progress and its last words.
 
-    def __init__(self, argv: list[str], *, name: str, cwd: Path) -> None:
-        self.argv, self.name = argv, name
+    ``shown``: the attempt's command lines as the page shows them (every status carries them,
+    so the page shows one attempt at a time). ``finish(succeeded)`` runs once the child has
+    ended, before the state changes: it puts a succeeded run's project in place (an OSError
+    fails the run with its reason) or discards a failed one's.
+    """
+
+    def __init__(self, argv: list[str], *, name: str, cwd: Path, attempt: int = 0,
+                 shown: dict[str, Any] | None = None, finish: Callable[[bool], None] | None = None,
+                 done_message: str = "done") -> None:
+        self.argv, self.name, self.attempt, self.shown = argv, name, attempt, shown or {}
+        self.finish, self.done_message = finish, done_message
         self.done, self.total = 0, None
         self.lines: list[str] = []
         self.state, self.message, self.returncode = "running", "starting refflow track", None
@@ -162,9 +179,19 @@ class Job:
             for part in parts:
                 self._line(part.decode("utf-8", "replace"))
         self._line(pending.decode("utf-8", "replace"))
-        self.returncode = rc = self.proc.wait()
-        if rc == 0:
-            self.state = "done"
+        rc = self.proc.wait()
+        failure = None
+        if self.finish is not None:
+            try:
+                self.finish(rc == 0)
+            except OSError as err:
+                failure = (f"the measurement is written but the project could not be: {err.strerror or err}: "
+                           f"{err.filename or ''} (check the output folder)")
+        self.returncode = rc
+        if rc == 0 and failure:
+            self.state, self.message = "failed", failure
+        elif rc == 0:
+            self.state, self.message = "done", self.done_message
             self.done = self.total or self.done
         elif self.cancelled and rc in (130, 143, -signal.SIGTERM, -signal.SIGINT):
             self.state, self.message = "cancelled", "cancelled: refflow track stopped, no output written"
@@ -180,8 +207,9 @@ class Job:
             self.proc.send_signal(signal.SIGTERM)
 
     def status(self) -> dict[str, Any]:
-        return {"state": self.state, "done": self.done, "total": self.total, "message": self.message,
-                "name": self.name, "returncode": self.returncode, "log": self.lines[-12:]}
+        return {**self.shown, "attempt": self.attempt, "kind": "run", "state": self.state, "done": self.done,
+                "total": self.total, "message": self.message, "name": self.name, "returncode": self.returncode,
+                "log": self.lines[-12:]}
 
 
 class App:
@@ -205,6 +233,7 @@ class App:
         self.frames = Frames(self.source)
         self.lock = threading.Lock()
         self.job: Job | None = None
+        self.attempts = 0  # every save, POI figure and run is an attempt with its number
         self.statics = static_files()
 
     # -- the project ------------------------------------------------------------------------
@@ -237,28 +266,66 @@ class App:
                 "default_method": default, "project": saved,
                 "notes": list(source.notes)}
 
-    def save(self, body: dict[str, Any]) -> dict[str, Any]:
-        """Write the project JSON and its mask PNGs; return the files and command lines."""
-        from refflow.io import atomic_path
-
+    def _project(self, body: dict[str, Any]) -> tuple[str, dict[str, Any], dict[str, Path]]:
+        """The run's name, its project (checked) and where its files go."""
         name = projects.check_name(body.get("name"))
-        files = projects.files_of(name)
         project = projects.from_page(body.get("project"), video=self.video, name=name, fps=self.fps,
                                      calibration=self.calibration)
-        targets = {role: self.folder.path(file) for role, file in files.items()}
+        targets = {role: self.folder.path(file) for role, file in projects.files_of(name).items()}
+        return name, project, targets
+
+    def _shown(self, name: str, project: dict[str, Any]) -> dict[str, Any]:
+        """The command lines of the run ``name``'s ``project`` saved in the output folder, as the
+        page shows them."""
+        argv = projects.track_argv_of(project, self.folder.root)
+        project_file = self.folder.root / projects.files_of(name)["project"]
+        project_argv = ["track", "--project", str(project_file)]
+        return {"argv": argv, "command": projects.command_line(argv), "groups": projects.command_groups(argv),
+                "project_path": str(project_file), "project_command": projects.command_line(project_argv),
+                "project_groups": projects.command_groups(project_argv)}
+
+    def _write(self, project: dict[str, Any], targets: dict[str, Path]) -> None:
+        """The project JSON and its mask PNGs at ``targets`` (masks first: a project never names
+        a mask that is not there yet)."""
+        from refflow.io import atomic_path
+
         if project["mask"]:
             write_mask(targets["mask"], project["regions"], self.source.size)
         if project["background"]:
             write_mask(targets["background"], project["background"]["regions"], self.source.size)
         with atomic_path(targets["project"]) as tmp:
             tmp.write_text(projects.dumps(project))
-        argv = projects.track_argv(targets["project"])
-        command = projects.command_line(argv)
-        print(f"refflow gui: saved {targets['project']}\n  {command}\n  "
-              f"refflow track --project {targets['project']}", flush=True)
-        return {"name": name, "files": files, "project_path": str(targets["project"]), "argv": argv,
-                "command": command, "project_command": projects.command_line(
-                    ["track", "--project", str(targets["project"])])}
+
+    def _next_attempt(self) -> int:
+        with self.lock:
+            self.attempts += 1
+            return self.attempts
+
+    def save(self, body: dict[str, Any]) -> dict[str, Any]:
+        """Write the project JSON and its mask PNGs; return the files and command lines."""
+        name, project, targets = self._project(body)
+        self._write(project, targets)
+        shown = self._shown(name, project)
+        print(f"refflow gui: saved {targets['project']}\n  {shown['command']}\n  {shown['project_command']}",
+              flush=True)
+        return {**shown, "name": name, "files": projects.files_of(name), "attempt": self._next_attempt(),
+                "kind": "save", "state": "saved", "message": f"saved {shown['project_path']}"}
+
+    def _staged(self, name: str, project: dict[str, Any]) -> tuple[Path, dict[str, Path]]:
+        """The project and its masks written into a fresh hidden folder inside the output folder
+        (the same file system: moving them into place is a rename); returns the folder and the
+        staged file of each role. The saved project is replaced only by a run that succeeded."""
+        if not project["regions"]:
+            raise InputError("no POI region: draw a polygon around the member first (POI mask tool: click its "
+                             "corners, then the first corner again)")
+        folder = Path(tempfile.mkdtemp(prefix=f".{name}.attempt-", dir=self.folder.root))
+        staged = {role: folder / file for role, file in projects.files_of(name).items()}
+        try:
+            self._write(project, staged)
+        except BaseException:
+            shutil.rmtree(folder, ignore_errors=True)
+            raise
+        return folder, staged
 
     def scale(self, body: dict[str, Any]) -> dict[str, Any]:
         """mm per pixel of ``known_length_mm`` between ``between_px`` (undistorted with the
@@ -275,31 +342,72 @@ class App:
         return {"mm_per_px": mm_per_px, "undistorted": self.undistort_points is not None}
 
     def pois(self, body: dict[str, Any]) -> dict[str, Any]:
-        """Save, then ``refflow pois``: the figure of the POIs next to the corners KLT would use."""
-        saved = self.save(body)
-        figure = self.folder.path(saved["files"]["pois"])
-        argv = projects.pois_argv(saved["project_path"], figure)
-        done = subprocess.run([sys.executable, "-m", "flow.cli", *argv], capture_output=True, text=True,
-                              cwd=self.folder.root, timeout=600, stdin=subprocess.DEVNULL)
+        """``refflow pois`` on the page's project (staged, not saved): the figure of the POIs next
+        to the corners KLT would use."""
+        name, project, targets = self._project(body)
+        shown = self._shown(name, project)
+        folder, staged = self._staged(name, project)
+        try:
+            argv = projects.pois_argv(staged["project"], targets["pois"])
+            done = subprocess.run([sys.executable, "-m", "flow.cli", *argv], capture_output=True, text=True,
+                                  cwd=self.folder.root, timeout=600, stdin=subprocess.DEVNULL)
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
         if done.returncode != 0:
             lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
             errors = [ln for ln in lines if ln.startswith("refflow pois: error:")]
             raise InputError(errors[-1] if errors else (lines[-1] if lines else f"refflow pois failed ({done.returncode})"))
-        return {**saved, "image": saved["files"]["pois"], "message": done.stdout.strip().splitlines()[-1]}
+        return {**shown, "name": name, "files": projects.files_of(name), "image": targets["pois"].name,
+                "attempt": self._next_attempt(), "kind": "pois", "state": "shown",
+                "message": done.stdout.strip().splitlines()[-1]}
 
     # -- the run ------------------------------------------------------------------------------
 
     def run(self, body: dict[str, Any]) -> dict[str, Any]:
+        """Start ``refflow track`` on the page's project. Its project JSON and masks are staged
+        and put in place only when the run succeeds: a failed or cancelled run leaves the saved
+        project, its masks and the last result as they were."""
         with self.lock:
             if self.job is not None and self.job.state == "running":
                 raise Busy("a run is in progress: wait for it or cancel it first")
-            saved = self.save(body)
-            self.job = Job(saved["argv"], name=saved["name"], cwd=self.folder.root)
-            return {**saved, **self.job.status()}
+            name, project, targets = self._project(body)
+            shown = self._shown(name, project)
+            folder, staged = self._staged(name, project)
+            # The run reads the staged masks and writes its CSV and sidecar where they belong
+            # (`track` writes those only when it succeeds); the command shown names the masks'
+            # places once the run has succeeded.
+            named = {role: str(self.folder.root / file) for role, file in projects.files_of(name).items()}
+            swap = {named[role]: str(staged[role]) for role in ("mask", "background")}
+            argv = [swap.get(item, item) for item in shown["argv"]]
+            csv = targets["csv"].name
+            done_message = (f"done: {csv} in mm" if project["scale"] else
+                            f"done: {csv} in pixels: no scale was given (step 2, Scale, gives mm)")
+            self.attempts += 1
+            try:
+                self.job = Job(argv, name=name, cwd=self.folder.root, attempt=self.attempts, shown=shown,
+                               done_message=done_message,
+                               finish=lambda succeeded: self._settle(succeeded, folder, staged, targets, named))
+            except BaseException:
+                shutil.rmtree(folder, ignore_errors=True)
+                raise
+            return self.job.status()
+
+    def _settle(self, succeeded: bool, folder: Path, staged: dict[str, Path], targets: dict[str, Path],
+                named: dict[str, str]) -> None:
+        """A run has ended: a succeeded one's project and masks replace the saved ones (masks
+        first, the project last); the staging folder goes either way."""
+        try:
+            if succeeded:
+                roles = [role for role in ("mask", "background") if staged[role].is_file()]
+                for role in [*roles, "project"]:
+                    os.replace(staged[role], targets[role])
+                retarget_sidecar(targets["sidecar"], {str(staged[role]): named[role] for role in roles})
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
 
     def status(self) -> dict[str, Any]:
         job = self.job
-        return job.status() if job is not None else {"state": "idle", "message": "no run yet"}
+        return job.status() if job is not None else {"state": "idle", "message": "no run yet", "attempt": 0}
 
     def cancel(self) -> dict[str, Any]:
         job = self.job
@@ -345,6 +453,8 @@ class App:
                 job.proc.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 job.proc.kill()
+        if job is not None:
+            job.thread.join(timeout=30)  # its staging folder goes with it
         self.frames.close()
 
 
@@ -361,6 +471,31 @@ def envelope(x: np.ndarray, y: np.ndarray, points: int = 4096) -> tuple[np.ndarr
     blocks = y[:count].reshape(-1, step)
     picks = np.nanargmax(np.where(np.isfinite(blocks), blocks, -np.inf), axis=1) + np.arange(0, count, step)
     return x[picks], y[picks]
+
+
+def retarget_sidecar(path: Path, moved: dict[str, str]) -> None:
+    """The sidecar at ``path`` with the paths of files moved since the run (staged masks, from
+    ``moved``'s keys to its values) named where they are now."""
+    from refflow.io import atomic_path, json_text
+
+    if not moved or not path.is_file():
+        return
+
+    def renamed(value: Any) -> Any:
+        if isinstance(value, str):
+            return moved.get(value, value)
+        if isinstance(value, dict):
+            return {key: renamed(item) for key, item in value.items()}
+        if isinstance(value, list):
+            return [renamed(item) for item in value]
+        return value
+
+    data = json.loads(path.read_text())
+    fixed = renamed(data)
+    if fixed != data:
+        text = json_text(fixed)
+        with atomic_path(path) as tmp:
+            tmp.write_text(text)
 
 
 def write_mask(path: Path, regions: list[dict[str, Any]], frame_size: tuple[int, int]) -> None:
@@ -407,8 +542,8 @@ class Handler(BaseHTTPRequestHandler):
     def _json(self, data: Any, status: int = 200) -> None:
         self._send(status, json.dumps(data, allow_nan=False).encode(), "application/json")
 
-    def _error(self, status: int, message: str) -> None:
-        self._json({"error": " ".join(str(message).split())}, status)
+    def _error(self, status: int, message: str, **extra: Any) -> None:
+        self._json({"error": " ".join(str(message).split()), **extra}, status)
 
     def _allowed(self) -> bool:
         """Only this server's own address (a page elsewhere cannot reach it by DNS tricks or
@@ -490,18 +625,27 @@ class Handler(BaseHTTPRequestHandler):
         if not isinstance(body, dict):
             self._error(400, "the request body must be a JSON object")
             return
+        attempts = {"/api/project": "save", "/api/pois": "pois", "/api/run": "run"}
+
+        def failed(status: int, message: str) -> None:
+            # A save, a POI figure or a run that fails is an attempt too: its number lets the
+            # page tell its message from an older attempt's.
+            kind = attempts.get(url.path)
+            extra = {"attempt": self.app._next_attempt(), "kind": kind, "state": "failed"} if kind else {}
+            self._error(status, message, **extra)
+
         try:
             self._json(routes[url.path](body))
         except PathRefused as err:
-            self._error(403, str(err))
+            failed(403, str(err))
         except Busy as err:
-            self._error(409, str(err))
+            failed(409, str(err))
         except InputError as err:
-            self._error(400, str(err))
+            failed(400, str(err))
         except OSError as err:
-            self._error(500, f"{err.strerror or err}: {err.filename or ''} (check the output folder)")
+            failed(500, f"{err.strerror or err}: {err.filename or ''} (check the output folder)")
         except subprocess.TimeoutExpired:
-            self._error(504, "refflow pois took longer than 10 minutes")
+            failed(504, "refflow pois took longer than 10 minutes")
 
     def _frame(self, text: str) -> None:
         try:

@@ -295,11 +295,11 @@ def test_saved_project_mask_and_the_cli_messages(served, tmp_path) -> None:
     assert json.loads(reply[2])["mm_per_px"] == pytest.approx(10 / 50)
     reply = call(httpd, "POST", "/api/scale", {"known_length_mm": "10", "between_px": [[5, 5], [5, 5]]})
     assert reply[0] == 400 and error_of(reply) == "--between '5,5,5,5': the two points coincide; pick two distinct points"
-    # No region: `refflow pois` says what is missing, word for word.
-    reply = call(httpd, "POST", "/api/pois", {"name": "band", "project": page(regions=[], roi=None)})
-    assert reply[0] == 400
-    assert error_of(reply) == ("refflow pois: error: pass exactly one of --mask MASK.png, --rect X,Y,W,H or "
-                               "--polygon X1,Y1,...")
+    # No region: the page's own words (the tool would say "pass exactly one of --mask...").
+    for route in ("/api/pois", "/api/run"):
+        reply = call(httpd, "POST", route, {"name": "band", "project": page(regions=[], roi=None)})
+        assert reply[0] == 400
+        assert error_of(reply).startswith("no POI region: draw a polygon around the member first")
     reply = call(httpd, "POST", "/api/pois", {"name": "band", "project": state})
     assert reply[0] == 200 and json.loads(reply[2])["message"].startswith("POIs: ")
     assert call(httpd, "GET", "/api/file?inline=1&name=band_pois.png")[1] == "image/png"
@@ -348,7 +348,7 @@ def test_run_shows_progress_and_cancel_leaves_nothing(served) -> None:
     assert call(httpd, "POST", "/api/cancel", {})[0] == 200
     status = wait_run(httpd)
     assert status["state"] == "cancelled" and status["returncode"] == 143, status
-    assert sorted(p.name for p in out.iterdir()) == ["deck_mask.png", "deck_project.json"]
+    assert sorted(p.name for p in out.iterdir()) == []  # not even the project: it did not run
     assert call(httpd, "POST", "/api/cancel", {})[0] == 409
 
 
@@ -379,3 +379,71 @@ def test_values_starting_with_a_minus_reach_the_tool_as_values(tmp_path) -> None
 
     args = build_parser().parse_args(argv)
     assert (args.roi, args.between, args.known_length) == ("-4,0,50,50", "-5,2,40,2", -3.0)
+
+
+# -- issue 32, case 10: one attempt at a time; the project written only by a run that succeeded ----
+
+
+def test_only_a_succeeded_run_writes_its_project_and_masks(served, tmp_path) -> None:
+    httpd = served(write_clip(tmp_path / "clip.avi"))
+    out = httpd.app.folder.root
+    band = [[10, 20], [80, 20], [80, 44], [10, 44]]
+    corner = {"label": "corner", "polygon": [[0, 0], [20, 0], [20, 12], [0, 12]]}
+    state = page(roi=None, regions=[{"label": "band", "polygon": band}], background=[corner],
+                 scale={"mm_per_px": "0.25"}, options={"max_frames": "10"})
+    started = json.loads(call(httpd, "POST", "/api/run", {"name": "band", "project": state})[2])
+    status = wait_run(httpd)
+    assert status["state"] == "done", status
+    # Every status of the run carries its attempt and its command (the page shows them together).
+    assert status["attempt"] == started["attempt"] and status["command"] == started["command"]
+    assert status["command"] == projects.command_line(projects.track_argv(out / "band_project.json"))
+    assert " ".join(status["groups"]) == status["command"] and "--mm-per-px 0.25" in status["groups"]
+    files = ["band.csv", "band.json", "band_background.png", "band_mask.png", "band_project.json"]
+    assert sorted(p.name for p in out.iterdir()) == files  # nothing staged is left
+    sidecar = json.loads((out / "band.json").read_text())
+    assert sidecar["background"]["source"] == str(out / "band_background.png")  # where the mask is now
+    before = {name: (out / name).read_bytes() for name in files}
+
+    # A failed run (an ROI off the frame) with another polygon: the saved files stay as they were.
+    moved = [[12, 22], [70, 22], [70, 40], [12, 40]]
+    bad = {**state, "regions": [{"label": "band", "polygon": moved}], "roi": [50, 0, 100, 64]}
+    reply = call(httpd, "POST", "/api/run", {"name": "band", "project": bad})
+    assert reply[0] == 200 and json.loads(reply[2])["attempt"] > started["attempt"]
+    status = wait_run(httpd)
+    assert status["state"] == "failed" and "lies outside" in status["message"]
+    assert "--roi 50,0,100,64" in status["command"]  # the failed attempt's own command
+    assert {name: (out / name).read_bytes() for name in sorted(p.name for p in out.iterdir())} == before
+    # The POI figure of another polygon does not save it either (only Save project does).
+    reply = call(httpd, "POST", "/api/pois", {"name": "band", "project": {**bad, "roi": None}})
+    assert reply[0] == 200, reply
+    assert {name: (out / name).read_bytes() for name in files} == before
+    assert sorted(p.name for p in out.iterdir()) == sorted([*files, "band_pois.png"])
+    # A request refused outright is an attempt too, with its own number.
+    reply = call(httpd, "POST", "/api/run", {"name": "band", "project": {**state, "regions": []}})
+    refused = json.loads(reply[2])
+    assert reply[0] == 400 and refused["state"] == "failed" and refused["attempt"] > status["attempt"]
+
+
+def test_an_empty_mm_per_px_is_refused_and_a_run_without_scale_says_pixels(served, tmp_path) -> None:
+    httpd = served(write_clip(tmp_path / "clip.avi"))
+    band = [{"label": "band", "polygon": [[10, 20], [80, 20], [80, 44], [10, 44]]}]
+    for empty in ("", " ", None):
+        state = page(roi=None, regions=band, background=[], scale={"mm_per_px": empty}, options={"max_frames": "5"})
+        reply = call(httpd, "POST", "/api/run", {"name": "band", "project": state})
+        assert reply[0] == 400 and error_of(reply).startswith("mm per pixel is empty: type the scale, or choose "
+                                                              "'none (pixels only)'")
+    assert not (httpd.app.folder.root / "band.csv").exists()
+    state = page(roi=None, regions=band, background=[], scale=None, options={"max_frames": "5"})
+    assert call(httpd, "POST", "/api/run", {"name": "band", "project": state})[0] == 200
+    status = wait_run(httpd)
+    assert status["state"] == "done" and "in pixels: no scale was given" in status["message"]
+    assert json.loads(call(httpd, "GET", "/api/result?name=band")[2])["units"] == "px"
+
+
+def test_command_groups_keep_each_option_with_its_value(tmp_path) -> None:
+    argv = projects.track_argv(save(tmp_path, page(roi=[-4, 0, 50, 50])))
+    groups = projects.command_groups(argv)
+    assert " ".join(groups) == projects.command_line(argv)
+    assert groups[:3] == ["refflow track", str(tmp_path / "clip.mp4"), "--roi=-4,0,50,50"]
+    assert "--known-length 3800" in groups and "--param finest_scale=0" in groups
+    assert all(not g.startswith("--") or " " in g or "=" in g for g in groups)
