@@ -13,6 +13,7 @@ than the first 60.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -192,10 +193,11 @@ def test_draw_scale_run_plot_download(browser, server, tmp_path) -> None:
     page.el("run").click()
     wait_for(browser, "return document.getElementById('run-status').dataset.state === 'failed'")
     project_file = out / "tacoma_bridge_project.json"
-    expected = cli(projects.track_argv(project_file)).stderr.strip().splitlines()[-1]
+    shown_argv = json.loads(page.el("command").get_attribute("data-argv"))
+    expected = cli(shown_argv).stderr.strip().splitlines()[-1]
     assert expected.startswith("refflow track: error: --max-frames 0")
     assert page.message() == expected
-    assert not (out / "tacoma_bridge.csv").exists()
+    assert sorted(p.name for p in out.iterdir()) == []  # a failed run saves nothing, not even its project
 
     # 4. The run: progress, then the time history and the spectrum.
     page.type("max-frames", str(FRAMES) if FRAMES < 248 else "")
@@ -222,12 +224,7 @@ def test_draw_scale_run_plot_download(browser, server, tmp_path) -> None:
             shot.convert("RGB").quantize(256, dither=Image.Dither.NONE).save(
                 os.environ["REFFLOW_GUI_SCREENSHOT"], optimize=True)
 
-    # 5. The POIs next to the corners KLT would use (`refflow pois`), on the page.
-    page.el("show-pois").click()
-    wait_for(browser, "const i = document.getElementById('pois-image'); return i.complete && i.naturalWidth > 0")
-    assert page.el("pois-message").text.startswith("POIs: ")
-
-    # 6. The CSV through the browser's download equals the shell's run of the same project.
+    # 5. The CSV through the browser's download equals the shell's run of the same project.
     browser.find_element(page.by.CSS_SELECTOR, "a.download[data-file='tacoma_bridge.csv']").click()
     downloaded = browser.downloads / "tacoma_bridge.csv"
     end = time.monotonic() + 30
@@ -239,3 +236,210 @@ def test_draw_scale_run_plot_download(browser, server, tmp_path) -> None:
     assert done.returncode == 0, done.stderr
     assert downloaded.read_text() == shell_csv.read_text()
     assert downloaded.read_text() == (out / "tacoma_bridge.csv").read_text()
+
+    # 6. The POIs next to the corners KLT would use (`refflow pois`), on the page: a new attempt,
+    # so the run's plots and downloads give way to it.
+    page.el("show-pois").click()
+    wait_for(browser, "const i = document.getElementById('pois-image'); return i.complete && i.naturalWidth > 0")
+    assert page.el("pois-message").text.startswith("POIs: ")
+    assert page.el("results").get_attribute("hidden") is not None
+
+
+# -- issue 32, case 10: one attempt at a time, its project saved only when it succeeds; the scale
+# says when a run is in pixels; the snap on a thin frame; peak labels; the command's wrapping ----
+
+
+def write_clip(path: Path, width: int = 96, height: int = 64, frames: int = 24) -> Path:
+    """A small MJPG clip: a textured band moving right by 0.5 px a frame."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (height, width + 40)), (0, 0), 1.5)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (width, height), True)
+    for i in range(frames):
+        shift = np.float32([[1, 0, 0.5 * (i % 40) - 20], [0, 1, 0]])
+        grey = np.clip(cv2.warpAffine(texture, shift, (width, height)), 0, 255).astype(np.uint8)
+        writer.write(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    return path
+
+
+@pytest.fixture
+def serve(tmp_path):
+    """A server for a given video (its output folder tmp_path/out), and the page opened on it."""
+    from flow.gui.server import make_server
+
+    started = []
+
+    def start(video: Path, driver):
+        httpd = make_server(video, tmp_path / "out", port=0)
+        threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True).start()
+        started.append(httpd)
+        driver.get(f"http://127.0.0.1:{httpd.server_address[1]}/")
+        wait_for(driver, "return document.body.dataset.ready === '1' && "
+                         "document.getElementById('frame-canvas').dataset.frame === '0'")
+        return httpd, Page(driver)
+
+    yield start
+    for httpd in started:
+        httpd.shutdown()
+        httpd.server_close()
+        httpd.app.close()
+
+
+SHOWN = """const id = (i) => document.getElementById(i);
+const m = id('message');
+return {attempts: ['run-status', 'message', 'command'].map((i) => id(i).dataset.attempt),
+        state: id('run-status').dataset.state, status: id('run-status').textContent,
+        message: m.hidden ? '' : m.textContent, command: id('command').textContent,
+        results_hidden: id('results').hidden, downloads: id('downloads').children.length,
+        pois_hidden: id('pois-panel').hidden, units_note: !id('units-note').hidden,
+        scale_note: id('scale-result').textContent}"""
+
+
+def shown(driver) -> dict:
+    """What the page shows of its attempt; its three parts must name the same attempt."""
+    state = driver.execute_script(SHOWN)
+    assert len(set(state["attempts"])) == 1, state
+    return state
+
+
+def test_one_attempt_at_a_time_and_its_project_only_when_it_succeeds(browser, serve, tmp_path) -> None:
+    from selenium.webdriver.support.ui import Select
+
+    httpd, page = serve(write_clip(tmp_path / "clip.avi", frames=600), browser)
+    out = httpd.app.folder.root
+    page.tool("mask")
+    for x, y in [(10, 20), (80, 20), (80, 44), (10, 44), (10, 20)]:
+        page.click(x, y)
+    Select(page.el("method")).select_by_value("dis")
+    page.type("max-frames", "10")
+    # No scale: the scale section says a run now measures in pixels, and so do the results.
+    assert page.el("scale-result").text == "no scale yet: a run now measures in pixels"
+    page.el("run").click()
+    wait_for(browser, "return document.getElementById('results').dataset.ready === '1'", timeout=120)
+    first = shown(browser)
+    assert first["state"] == "done" and "in pixels: no scale was given" in first["status"], first
+    assert first["units_note"] and first["downloads"] == 4 and first["message"] == ""
+    saved = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert sorted(saved) == ["clip.csv", "clip.json", "clip_mask.png", "clip_project.json"]
+
+    # A new run clears the plots and downloads at once; after Cancel they stay cleared, and the
+    # saved project is the succeeded run's.
+    page.type("max-frames", "")
+    page.el("run").click()
+    started = shown(browser)
+    assert started["results_hidden"] and started["downloads"] == 0, started
+    wait_for(browser, "return !document.getElementById('cancel').disabled")
+    page.el("cancel").click()
+    wait_for(browser, "return document.getElementById('run-status').dataset.state === 'cancelled'", timeout=60)
+    cancelled = shown(browser)
+    assert cancelled["results_hidden"] and cancelled["downloads"] == 0, cancelled
+    assert cancelled["message"].startswith("cancelled") and cancelled["attempts"][0] != first["attempts"][0]
+    assert "--max-frames" not in cancelled["command"]  # the cancelled attempt's own command
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == saved
+
+    # mm per pixel chosen and left empty: refused, said where it is typed and in the message box.
+    page.el("mm-per-px").click()
+    assert page.el("scale-result").text == "type the mm per pixel, or choose none (pixels only)"
+    page.el("run").click()
+    wait_for(browser, "return document.getElementById('run-status').dataset.state === 'failed'")
+    refused = shown(browser)
+    assert refused["message"].startswith("mm per pixel is empty: type the scale, or choose 'none (pixels only)'")
+    assert "was refused before a command was made" in refused["command"]
+    assert int(refused["attempts"][0]) > int(cancelled["attempts"][0])
+    browser.find_element(page.by.CSS_SELECTOR, "input[name=scale-mode][value=none]").click()
+
+    # No polygon: the page's words, not the tool's "pass exactly one of --mask...".
+    browser.find_element(page.by.CSS_SELECTOR, "#regions li button").click()
+    page.el("run").click()
+    wait_for(browser, "return document.getElementById('message').textContent.startsWith('no POI region')")
+    assert shown(browser)["message"].startswith("no POI region: draw a polygon around the member first")
+
+    # A failed save after a failed run: status, message and command all of the save.
+    page.type("max-frames", "1.5")
+    page.el("save").click()
+    wait_for(browser, "return document.getElementById('message').textContent.includes('--max-frames')")
+    failed_save = shown(browser)
+    assert failed_save["status"].startswith(f"save #{failed_save['attempts'][0]}: failed"), failed_save
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == saved
+
+
+def test_the_first_corner_snaps_only_where_the_frame_is_large_enough(browser, serve, tmp_path) -> None:
+    from selenium.webdriver.common.keys import Keys
+
+    httpd, page = serve(write_clip(tmp_path / "thin.avi", width=1280, height=40, frames=3), browser)
+    page.tool("mask")
+    # A 40-px-high frame shown about 30 px high: a corner 6 px from the first one is a corner.
+    corners = [(100, 5), (600, 5), (600, 35), (106, 8)]
+    for x, y in corners:
+        page.click(x, y)
+    assert browser.execute_script("return window.refflowApp.regions.length") == 0
+    page.canvas.send_keys(Keys.ENTER)
+    regions = browser.execute_script("return window.refflowApp.regions")
+    assert len(regions) == 1 and len(regions[0]["polygon"]) == 4, regions
+    # Fewer than three corners never close, by Enter or a click on the first corner.
+    page.click(200, 10)
+    page.click(300, 10)
+    page.click(200, 10)
+    page.canvas.send_keys(Keys.ENTER)
+    assert browser.execute_script("return window.refflowApp.regions.length") == 1
+    assert "at least three corners" in page.el("tool-help").text
+
+
+def test_peak_labels_never_overlap(browser, serve, tmp_path) -> None:
+    httpd, page = serve(write_clip(tmp_path / "clip.avi"), browser)
+    boxes = browser.execute_script("""
+        document.getElementById('results').hidden = false;
+        const plot = window.refflowApp.plots.spectrum;
+        const freqs = Array.from({length: 200}, (_, i) => i * 0.05);
+        const peaks = [1.0, 1.0, 1.02, 1.05, 5.0, 9.9, 9.95];
+        plot.set({title: 'amplitude spectrum', x: 'frequency (Hz)', y: 'amplitude (px)',
+                  series: [{name: 'dx, peak 1.000 Hz', x: freqs, y: freqs.map(Math.sin), color: '#2563eb'},
+                           {name: 'dy, peak 9.950 Hz', x: freqs, y: freqs.map(Math.cos), color: '#ea580c'}],
+                  markers: peaks.map((x) => ({x, label: `${x.toFixed(3)} Hz`, color: '#2563eb'}))});
+        return {labels: plot.labelBoxes, legend: plot.legendBox, pad: plot.pad, w: plot.w, h: plot.h};""")
+    labels, legend = boxes["labels"], boxes["legend"]
+    assert len(labels) == 7, labels
+
+    def overlap(p, q):
+        return p["x"] < q["x"] + q["w"] and q["x"] < p["x"] + p["w"] and p["y"] < q["y"] + q["h"] and q["y"] < p["y"] + p["h"]
+
+    for i, box in enumerate(labels):
+        assert not overlap(box, legend), (box, legend)
+        assert boxes["pad"]["l"] <= box["x"] and box["x"] + box["w"] <= boxes["w"] - boxes["pad"]["r"], box
+        for other in labels[i + 1:]:
+            assert not overlap(box, other), (box, other)
+
+
+def test_the_shell_command_wraps_between_arguments(browser, serve, tmp_path) -> None:
+    httpd, page = serve(write_clip(tmp_path / "clip.avi"), browser)
+    page.tool("mask")
+    for x, y in [(10, 20), (80, 20), (80, 44), (10, 44), (10, 20)]:
+        page.click(x, y)
+    page.el("mm-per-px").click()
+    page.type("mm-per-px", "0.25")
+    page.type("params", "finest_scale=0")
+    page.el("save").click()
+    wait_for(browser, "return document.getElementById('run-status').dataset.state === 'saved'")
+    browser.execute_script("document.getElementById('shell').style.width = '520px'")
+    pieces = browser.execute_script("""
+        const pre = document.getElementById('command');
+        const style = getComputedStyle(pre);
+        const room = pre.clientWidth - parseFloat(style.paddingLeft) - parseFloat(style.paddingRight);
+        const ctx = document.createElement('canvas').getContext('2d');
+        ctx.font = style.font;
+        return [...pre.querySelectorAll('.line')[0].querySelectorAll('.arg')].map((piece) => {
+          const range = document.createRange();
+          range.selectNodeContents(piece);
+          const lines = new Set([...range.getClientRects()].map((r) => Math.round(r.top))).size;
+          return {text: piece.textContent, lines, fits: ctx.measureText(piece.textContent).width < room - 2,
+                  top: Math.round(piece.getBoundingClientRect().top)};
+        });""")
+    command = page.el("command").get_attribute("textContent").split("\n")[0]
+    assert command == " ".join(p["text"] for p in pieces) and command.startswith("refflow track ")
+    assert len({p["top"] for p in pieces}) >= 3, pieces  # it does wrap, between pieces
+    assert "--mm-per-px 0.25" in [p["text"] for p in pieces] and "--param finest_scale=0" in [p["text"] for p in pieces]
+    for piece in pieces:
+        assert piece["lines"] == 1 or not piece["fits"], piece  # only a piece wider than the box breaks

@@ -23,19 +23,23 @@
     view: {s: 1, ox: 0, oy: 0}, fitted: false, w: 0, h: 0,
     tool: "mask", roi: null, regions: [], background: [], drawing: null, scalePoints: [],
     drag: null, mouse: null, ready: false, running: false, result: null,
+    token: 0, attempt: null,  // the page's latest attempt; the server's number of it
   };
   window.refflowApp = app;
   const canvas = $("frame-canvas");
   const timePlot = new window.Plot($("plot-time"));
   const spectrumPlot = new window.Plot($("plot-spectrum"));
+  app.plots = {time: timePlot, spectrum: spectrumPlot};
 
   // -- messages and the API ------------------------------------------------------------------
 
+  // A message of no attempt (a frame that does not load, a polygon closed too early).
   function say(text, kind = "error") {
     const box = $("message");
     box.textContent = text || "";
     box.className = kind;
     box.hidden = !text;
+    box.dataset.attempt = "";
   }
 
   async function api(path, body) {
@@ -48,7 +52,11 @@
     } catch (err) {
       data = {error: `${reply.status} ${reply.statusText}`};
     }
-    if (!reply.ok) throw new Error(data.error || `${reply.status} ${reply.statusText}`);
+    if (!reply.ok) {
+      const err = new Error(data.error || `${reply.status} ${reply.statusText}`);
+      err.reply = data;
+      throw err;
+    }
     return data;
   }
 
@@ -324,6 +332,14 @@
     return null;
   }
 
+  // What the scale section says while it gives no mm per pixel of its own.
+  function scaleWithout() {
+    const mode = scaleMode();
+    if (mode === "none") return "displacements in pixels only";
+    if (mode === "mmpx") return $("mm-per-px").value.trim() ? "" : "type the mm per pixel, or choose none (pixels only)";
+    return scaleState() === null ? "no scale yet: a run now measures in pixels" : "";
+  }
+
   let scaleTimer = null;
   function updateScale() {
     const points = app.scalePoints;
@@ -335,7 +351,8 @@
     const result = $("scale-result");
     result.classList.remove("bad");
     if (scaleMode() !== "length" || points.length !== 2 || !$("known-length").value.trim()) {
-      result.textContent = scaleMode() === "none" ? "displacements in pixels only" : "";
+      result.textContent = scaleWithout();
+      result.classList.toggle("bad", scaleMode() === "mmpx" && !$("mm-per-px").value.trim());
       draw();
       return;
     }
@@ -353,35 +370,51 @@
 
   // -- polygons --------------------------------------------------------------------------------
 
+  // A click this close to the first corner closes the polygon: at most 8 CSS pixels, and at most
+  // 5 % of the frame's smaller side as shown, so on a thin frame (40 px high, shown 30 px high) a
+  // corner beside the first one is a corner; under 2 px nothing snaps (double-click or Enter closes).
+  function snapRadius() {
+    const radius = Math.min(8, 0.05 * Math.min(app.info.width, app.info.height) * s());
+    return radius >= 2 ? radius : 0;
+  }
+
+  // A double-click's clicks add the same corner twice, and a click back on the first corner
+  // where nothing snaps adds it again: keep one of each.
+  function distinctCorners(points) {
+    const apart = (p, q) => Math.hypot(p[0] - q[0], p[1] - q[1]) * s() > 3;
+    const kept = points.filter((p, i) => i === 0 || apart(p, points[i - 1]));
+    return kept.length > 1 && !apart(kept[kept.length - 1], kept[0]) ? kept.slice(0, -1) : kept;
+  }
+
   function addVertex(p) {
     if (!app.drawing || app.drawing.kind !== app.tool) app.drawing = {kind: app.tool, points: []};
     const d = app.drawing;
-    if (d.points.length >= 3) {
+    if (distinctCorners(d.points).length >= 3) {
       const [fx, fy] = pixelToCanvas(d.points[0][0], d.points[0][1]);
       const [x, y] = pixelToCanvas(p[0], p[1]);
-      if (Math.hypot(fx - x, fy - y) < 8) { closePolygon(); return; }
+      if (Math.hypot(fx - x, fy - y) < snapRadius()) { closePolygon(); return; }
     }
     d.points.push(round2(p));
+  }
+
+  function hint(text) {
+    $("tool-help").textContent = text || HELP[app.tool];
+    $("tool-help").classList.toggle("bad", Boolean(text));
   }
 
   function closePolygon() {
     const d = app.drawing;
     if (!d) return;
-    // A double-click's clicks add the same corner twice: keep one.
-    const points = d.points.filter((p, i) => {
-      if (i === 0) return true;
-      const q = d.points[i - 1];
-      return Math.hypot(p[0] - q[0], p[1] - q[1]) * s() > 3;
-    });
+    const points = distinctCorners(d.points);
     if (points.length < 3) {
-      say("a polygon needs at least three corners: click more before closing it");
+      hint("a polygon needs at least three corners: click more before closing it");
       return;
     }
     const list = d.kind === "mask" ? app.regions : app.background;
     list.push({label: d.kind === "mask" ? `region ${app.regions.length + 1}` : `background ${app.background.length + 1}`,
                polygon: points});
     app.drawing = null;
-    say("");
+    hint("");
     renderRegions();
     draw();
   }
@@ -393,7 +426,7 @@
     app.tool = tool;
     document.querySelectorAll(".tool").forEach((b) => b.classList.toggle("active", b.dataset.tool === tool));
     canvas.dataset.tool = tool;
-    $("tool-help").textContent = HELP[tool];
+    hint("");
     draw();
   }
 
@@ -530,9 +563,80 @@
     updateScale();
   }
 
-  function showCommands(saved) {
-    $("command").textContent = `${saved.command}\n\n# or, from the saved project:\n${saved.project_command}`;
-    $("command").dataset.argv = JSON.stringify(saved.argv);
+  // -- attempts: a save, a POI figure or a run; the page shows one at a time --------------------
+  // The status line, the message box, the command and the result all come from the latest
+  // attempt: a new one clears them first, and a reply of an older one is dropped.
+
+  const KINDS = {save: "save", pois: "POI figure", run: "run"};
+
+  function beginAttempt() {
+    app.token += 1;
+    app.attempt = null;
+    clearResults();
+    for (const id of ["run-status", "message", "command"]) $(id).dataset.attempt = "pending";
+    $("run-status").textContent = "";
+    $("run-status").dataset.state = "pending";
+    $("message").hidden = true;
+    $("message").textContent = "";
+    $("command").replaceChildren("…");
+    $("progress").value = 0;
+    return app.token;
+  }
+
+  function clearResults() {
+    app.result = null;
+    $("results").hidden = true;
+    $("results").dataset.ready = "";
+    $("downloads").replaceChildren();
+    $("units-note").hidden = true;
+    timePlot.set({series: []});
+    spectrumPlot.set({series: []});
+    $("pois-panel").hidden = true;
+    $("pois-image").removeAttribute("src");
+    $("pois-message").textContent = "";
+  }
+
+  function commandLines(groups) {
+    // Each option with its value is one unbreakable piece; the line wraps at the spaces between.
+    const line = document.createElement("span");
+    line.className = "line";
+    groups.forEach((group, i) => {
+      const piece = document.createElement("span");
+      piece.className = "arg";
+      piece.textContent = group;
+      line.append(...(i ? [" ", piece] : [piece]));
+    });
+    return line;
+  }
+
+  function showAttempt(a) {
+    app.attempt = a.attempt;
+    const tag = a.attempt ? `${KINDS[a.kind] || a.kind} #${a.attempt}` : (KINDS[a.kind] || "");
+    for (const id of ["run-status", "message", "command"]) $(id).dataset.attempt = String(a.attempt || "");
+    const status = $("run-status");
+    status.dataset.state = a.state;
+    const failed = a.state === "failed";
+    status.textContent = failed ? `${tag}: failed (the message above says why)` : `${tag}: ${a.message || a.state}`;
+    const box = $("message");
+    box.textContent = failed || a.state === "cancelled" ? a.message : "";
+    box.className = failed ? "error" : "info";
+    box.hidden = !box.textContent;
+    const command = $("command");
+    if (!a.groups) {
+      command.replaceChildren(`${tag} was refused before a command was made: see the message above.`);
+      delete command.dataset.argv;
+      return;
+    }
+    const parts = [commandLines(a.groups)];
+    const saved = {saved: "# or, from the saved project:", done: "# or, from the saved project:",
+                   running: "# once the run succeeds, from its saved project:"}[a.state];
+    if (saved && a.project_groups) parts.push(`\n\n${saved}\n`, commandLines(a.project_groups));
+    command.replaceChildren(...parts);
+    command.dataset.argv = JSON.stringify(a.argv);
+  }
+
+  function failedAttempt(err, kind) {
+    return {kind, ...(err.reply || {}), state: "failed", message: err.message};
   }
 
   function methodChanged() {
@@ -551,80 +655,78 @@
   }
 
   async function save() {
+    const token = beginAttempt();
     try {
       const saved = await api("/api/project", request());
-      showCommands(saved);
-      say(`saved ${saved.project_path}`, "info");
+      if (token === app.token) showAttempt(saved);
     } catch (err) {
-      say(err.message);
+      if (token === app.token) showAttempt(failedAttempt(err, "save"));
     }
   }
 
   async function showPois() {
+    const token = beginAttempt();
     $("run-status").textContent = "drawing the POIs and KLT's corners…";
     try {
       const r = await api("/api/pois", request());
-      showCommands(r);
-      const panel = $("pois-panel");
-      panel.hidden = false;
+      if (token !== app.token) return;
+      showAttempt(r);
+      $("pois-panel").hidden = false;
       $("pois-image").src = `/api/file?inline=1&name=${encodeURIComponent(r.image)}&t=${Date.now()}`;
       $("pois-message").textContent = r.message;
-      $("run-status").textContent = "";
-      say("");
     } catch (err) {
-      $("run-status").textContent = "";
-      say(err.message);
+      if (token === app.token) showAttempt(failedAttempt(err, "pois"));
     }
   }
 
   async function run() {
-    say("");
-    $("results").dataset.ready = "";
+    const token = beginAttempt();
+    $("run-status").textContent = "starting refflow track…";
+    let r;
     try {
-      const r = await api("/api/run", request());
-      showCommands(r);
-      setRunning(true);
-      $("progress").value = 0;
-      poll();
+      r = await api("/api/run", request());
     } catch (err) {
-      say(err.message);
+      if (token === app.token) showAttempt(failedAttempt(err, "run"));
+      return;
     }
+    if (token !== app.token) return;
+    showAttempt(r);
+    setRunning(true);
+    poll(token);
   }
 
-  async function poll() {
+  async function poll(token) {
     let status;
     try {
       status = await api("/api/run");
     } catch (err) {
+      if (token !== app.token) return;
       say(err.message);
       setRunning(false);
       return;
     }
+    if (token !== app.token) return;
+    showAttempt(status);
     const progress = $("progress");
     progress.max = status.total || Math.max(status.done, 1);
     progress.value = status.done || 0;
-    $("run-status").textContent = status.message || "";
     if (status.state === "running") {
-      setTimeout(poll, 250);
+      setTimeout(() => poll(token), 250);
       return;
     }
     setRunning(false);
-    $("run-status").dataset.state = status.state;
     if (status.state === "done") {
       progress.value = progress.max;
-      await showResult(status.name);
-    } else if (status.state === "failed") {
-      say(status.message);
-    } else if (status.state === "cancelled") {
+      await showResult(status.name, token);
+    } else {
       progress.value = 0;
-      say(status.message, "info");
     }
   }
 
   async function cancel() {
     try {
       await api("/api/cancel", {});
-      $("run-status").textContent = "cancelling…";
+      $("run-status").textContent = `run #${app.attempt}: cancelling…`;
     } catch (err) {
       say(err.message);
     }
@@ -640,28 +742,30 @@
     return a;
   }
 
-  async function showResult(name) {
+  async function showResult(name, token) {
     let r;
     try {
       r = await api(`/api/result?name=${encodeURIComponent(name)}`);
     } catch (err) {
-      say(err.message);
+      if (token === app.token) say(err.message);
       return;
     }
+    if (token !== app.token) return;
     app.result = r;
     $("results").hidden = false;
     const u = r.units;
+    $("units-note").hidden = u !== "px";
     timePlot.set({
       title: `${r.label}: ${r.valid} of ${r.frames} frames valid`, x: "time (s)", y: `displacement (${u})`,
       series: [{name: `dx (${u})`, x: r.time_s, y: r.dx, color: COLOURS.dx},
                {name: `dy (${u})`, x: r.time_s, y: r.dy, color: COLOURS.dy}],
     });
     const series = [], markers = [];
-    ["dx", "dy"].forEach((axis, row) => {
+    ["dx", "dy"].forEach((axis) => {
       const sp = r.spectra[axis];
       const peak = sp.peak_hz === null ? "" : `, peak ${sp.peak_hz.toFixed(3)} Hz`;
       series.push({name: `${axis}${peak}`, x: sp.freqs, y: sp.amplitude, color: COLOURS[axis]});
-      if (sp.peak_hz !== null) markers.push({x: sp.peak_hz, label: `${sp.peak_hz.toFixed(3)} Hz`, color: COLOURS[axis], row});
+      if (sp.peak_hz !== null) markers.push({x: sp.peak_hz, label: `${sp.peak_hz.toFixed(3)} Hz`, color: COLOURS[axis]});
     });
     spectrumPlot.set({title: "amplitude spectrum", x: "frequency (Hz)", y: `amplitude (${u})`, series, markers,
                       home: r.view_hz ? {x0: 0, x1: r.view_hz} : null});
@@ -705,6 +809,7 @@
     select.value = info.default_method;
     if (info.project) load(info.project);
     methodChanged();
+    updateScale();
     renderRegions();
     setTool("mask");
     resize();
@@ -713,8 +818,12 @@
     // A page opened again (a reload) picks up the run in progress, or the last result.
     try {
       const status = await api("/api/run");
-      if (status.state === "running") { setRunning(true); poll(); }
-      else if (status.state === "done") await showResult(status.name);
+      if (status.attempt) {
+        const token = beginAttempt();
+        showAttempt(status);
+        if (status.state === "running") { setRunning(true); poll(token); }
+        else if (status.state === "done") await showResult(status.name, token);
+      }
     } catch (err) {
       say(err.message);
     }
@@ -729,6 +838,7 @@
   $("clear-roi").addEventListener("click", () => setRoi(null));
   $("known-length").addEventListener("input", updateScale);
   document.querySelectorAll("input[name=scale-mode]").forEach((r) => r.addEventListener("change", updateScale));
+  $("mm-per-px").addEventListener("input", updateScale);
   $("mm-per-px").addEventListener("focus", () => { document.querySelector("input[value=mmpx]").checked = true; updateScale(); });
   $("known-length").addEventListener("focus", () => { document.querySelector("input[value=length]").checked = true; });
   $("method").addEventListener("change", methodChanged);

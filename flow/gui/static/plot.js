@@ -112,6 +112,32 @@ class Plot {
     return {x0: x.x0, x1: x.x1, ...this.yRange(x.x0, x.x1)};
   }
 
+  // Each visible marker's label box, none overlapping another or the legend: beside its line
+  // (right, else left), in the first free row from the top; a label with no free place is left
+  // out (the legend names the peaks too). Kept in this.labelBoxes.
+  layoutLabels(ctx, v) {
+    const {l, r, t, b} = this.pad;
+    const right = this.w - r, bottom = this.h - b;
+    const taken = this.legendBox ? [this.legendBox] : [];
+    const overlaps = (p, q) => p.x < q.x + q.w && q.x < p.x + p.w && p.y < q.y + q.h && q.y < p.y + p.h;
+    const visible = this.markers.filter((m) => m.x !== null && m.x >= v.x0 && m.x <= v.x1)
+      .map((m) => ({m, X: this.px(m.x, v)})).sort((p, q) => p.X - q.X);
+    ctx.font = "11px system-ui, sans-serif";
+    for (const item of visible) {
+      const w = ctx.measureText(item.m.label).width + 4, h = 14;
+      item.box = null;
+      for (let y = t + 3; y + h <= bottom && !item.box; y += h + 2) {
+        for (const x of [item.X + 2, item.X - 2 - w]) {
+          const box = {x, y, w, h};
+          if (x >= l && x + w <= right && !taken.some((q) => overlaps(box, q))) { item.box = box; break; }
+        }
+      }
+      if (item.box) taken.push(item.box);
+    }
+    this.labelBoxes = visible.filter((item) => item.box).map((item) => ({label: item.m.label, ...item.box}));
+    return visible;
+  }
+
   px(x, v) { return this.pad.l + (x - v.x0) / (v.x1 - v.x0) * (this.w - this.pad.l - this.pad.r); }
   py(y, v) { return this.h - this.pad.b - (y - v.y0) / (v.y1 - v.y0) * (this.h - this.pad.t - this.pad.b); }
   xOf(px, v) { return v.x0 + (px - this.pad.l) / (this.w - this.pad.l - this.pad.r) * (v.x1 - v.x0); }
@@ -164,21 +190,24 @@ class Plot {
     ctx.textAlign = "left"; ctx.textBaseline = "middle";
     ctx.fillText(this.labels.title, l, t / 2);
 
+    ctx.font = "11px system-ui, sans-serif";
+    const legendWidth = Math.max(0, ...this.series.map((s) => ctx.measureText(s.name).width)) + 34;
+    this.legendBox = this.series.length
+      ? {x: right - legendWidth - 6, y: t + 4, w: legendWidth, h: 16 * this.series.length + 2} : null;
+    const placed = this.layoutLabels(ctx, v);
     ctx.save();
     ctx.beginPath(); ctx.rect(l, t, right - l, bottom - t); ctx.clip();
-    for (const m of this.markers) {
-      if (m.x === null || m.x < v.x0 || m.x > v.x1) continue;
-      const X = this.px(m.x, v);
+    for (const {m, X, box} of placed) {
       ctx.strokeStyle = m.color; ctx.setLineDash([5, 4]);
       ctx.beginPath(); ctx.moveTo(X, t); ctx.lineTo(X, bottom); ctx.stroke();
       ctx.setLineDash([]);
+      if (!box) continue;
       ctx.font = "11px system-ui, sans-serif";
       ctx.textAlign = "left"; ctx.textBaseline = "top";
-      const top = t + 4 + 15 * (m.row || 0);
       ctx.fillStyle = "rgba(255,255,255,0.85)";
-      ctx.fillRect(X + 2, top - 1, ctx.measureText(m.label).width + 4, 14);
+      ctx.fillRect(box.x, box.y, box.w, box.h);
       ctx.fillStyle = m.color;
-      ctx.fillText(m.label, X + 4, top);
+      ctx.fillText(m.label, box.x + 2, box.y + 1);
     }
     ctx.lineWidth = 1.4;
     ctx.lineJoin = "round";
@@ -199,11 +228,12 @@ class Plot {
     // Legend (top right, inside the axes)
     ctx.font = "11px system-ui, sans-serif";
     ctx.textAlign = "left"; ctx.textBaseline = "middle";
-    const width = Math.max(0, ...this.series.map((s) => ctx.measureText(s.name).width)) + 34;
+    const width = legendWidth;
     let y = t + 12;
-    if (this.series.length) {
+    if (this.legendBox) {
+      const g = this.legendBox;
       ctx.fillStyle = "rgba(255,255,255,0.85)";
-      ctx.fillRect(right - width - 6, t + 4, width, 16 * this.series.length + 2);
+      ctx.fillRect(g.x, g.y, g.w, g.h);
     }
     for (const s of this.series) {
       ctx.strokeStyle = s.color; ctx.lineWidth = 2;
