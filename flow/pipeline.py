@@ -23,9 +23,9 @@ import numpy as np
 
 from flow import inputs, registry
 from flow.errors import InputError
-from flow.io import FrameSource
+from flow.io import FrameSource, check_fps
 from flow.options import FilterOptions, FramesInfo, InputInfo, MergeOptions, RunInfo, TrackOptions
-from flow.scale import NO_SCALE_NOTE, Scale, check_scale_options, measurement_scale, positive
+from flow.scale import NO_SCALE_NOTE, Scale, check_scale_options, measurement_scale
 from flow.write import output_names, write_outputs
 from refflow.io import finite_or_none
 
@@ -179,7 +179,7 @@ def _checked_jobs(options: TrackOptions, notes: list[str]) -> int:
     """Check the options that need no file; returns the threads to measure with."""
     check_scale_options(options.scale)
     check_filter_options(options.filter)
-    positive("--fps", options.source.fps, "the camera frame rate in frames per second")
+    check_fps(options.source.fps)
     if options.max_frames is not None and options.max_frames < 1:
         raise InputError(f"--max-frames {options.max_frames} must be >= 1")
     if options.jobs is not None and options.jobs < 1:
@@ -247,6 +247,10 @@ def _track_frames(options: TrackOptions, setup: _Setup, method: Any, new_method:
                                         progress=options.progress, store_dir=store_dir,
                                         background=setup.background, mask=setup.labels)
     notes.extend(setup.source.notes)
+    time_s, clock_notes = setup.source.clock(tracks.frame, tracks.time_s)
+    for note in clock_notes:
+        _note(notes, note)
+    tracks = replace(tracks, time_s=time_s)
     for warning in caught:
         notes.append(str(warning.message))
         print(f"refflow track: warning: {warning.message}", file=sys.stderr)
