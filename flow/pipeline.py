@@ -25,6 +25,7 @@ from flow import inputs, registry
 from flow.errors import InputError
 from flow.io import FrameSource, check_fps
 from flow.options import FilterOptions, FramesInfo, InputInfo, MergeOptions, RunInfo, TrackOptions
+from flow.reference import check as check_reference
 from flow.scale import NO_SCALE_NOTE, Scale, check_scale_options, measurement_scale
 from flow.write import output_names, write_outputs
 from refflow.io import finite_or_none
@@ -150,6 +151,8 @@ def track(options: TrackOptions) -> Outcome:
     read_paths = options.input_paths()
     output_names(options.outputs, read_paths)
     setup = _set_up(options, notes, name, sparse)
+    check_reference(setup.source, options.reference_frame, options.reference_average, setup.labels > 0,
+                    setup.undistort)
     tracks = _track_frames(options, setup, method, lambda: build_method(name, params), sparse, jobs, frames, notes)
     if not setup.scale.given:
         notes.append(NO_SCALE_NOTE)
