@@ -8,8 +8,8 @@ and read a different mm per pixel than `track` of the same frames (issue 14): bo
 from __future__ import annotations
 
 import math
-from decimal import Decimal
 from dataclasses import dataclass
+from decimal import Decimal
 from typing import Any
 
 from flow.errors import InputError
