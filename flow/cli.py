@@ -115,6 +115,8 @@ def _counts(results: list[tuple[int, Any]]) -> str:
 
 
 def cmd_methods(args: argparse.Namespace) -> int:
+    if args.params:
+        return _print_parameters(args.params)
     width = max(len(n) for n in registry.available())
     kinds = registry.kinds()
     for name, summary in registry.describe().items():
@@ -122,6 +124,31 @@ def cmd_methods(args: argparse.Namespace) -> int:
     for name, reason in registry.unavailable().items():
         print(f"({name} unavailable: {reason})")
     return 0
+
+
+def _print_parameters(name: str) -> int:
+    """``refflow methods --params NAME``: every parameter of the method, with its type, default,
+    range and meaning (what ``--param KEY=VALUE`` accepts)."""
+    try:
+        table = registry.parameters(name)
+    except ValueError as err:
+        raise InputError(f"{err} (see `refflow methods`)") from None
+    print(f"{name}: {registry.describe()[name]}")
+    print(f"parameters (`refflow track --method {name} --param KEY=VALUE`, repeatable):")
+    rows = [("name", "type", "default", "range", "meaning")]
+    rows += [(p.name, p.type_text(), _value_text(p.default), p.range_text(), p.meaning) for p in table]
+    widths = [max(len(row[i]) for row in rows) for i in range(4)]
+    for row in rows:
+        print("  " + "  ".join(cell.ljust(width) for cell, width in zip(row[:4], widths, strict=True))
+              + "  " + row[4])
+    return 0
+
+
+def _value_text(value: Any) -> str:
+    """A default as ``--param`` spells it."""
+    if value is None or isinstance(value, bool):
+        return str(value).lower()
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -246,14 +273,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="refflow", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("methods", help="list measurement methods")
+    p = sub.add_parser("methods", help="list measurement methods, or one method's parameters")
+    p.add_argument("--params", metavar="NAME", help="list every parameter of method NAME: type, default, "
+                   "range and meaning (what --param KEY=VALUE accepts)")
     p.set_defaults(func=cmd_methods)
 
     p = sub.add_parser("track", help="measure displacement of the POIs against the reference frame")
     _add_input_options(p)
     p.add_argument("--method", help="method name (default: deepflow, else deepflow-opencv); see `refflow methods`")
     p.add_argument("--preset", choices=("ultrafast", "fast", "medium"), help="DIS preset")
-    p.add_argument("--param", action="append", metavar="KEY=VALUE", help="method parameter (repeatable)")
+    p.add_argument("--param", action="append", metavar="KEY=VALUE",
+                   help="method parameter (repeatable); `refflow methods --params NAME` lists them with their ranges")
     p.add_argument("--background-mask", help="mask PNG of static scene (wall, ground; raw video pixels): "
                    "the camera's motion measured there is removed from the POIs' (tripod shake, drift)")
     p.add_argument("--background-rect", help="static region X,Y,W,H (raw full-frame pixels), like --background-mask")
