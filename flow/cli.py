@@ -15,6 +15,7 @@ code 2, and no output file; anything else that goes wrong is a bug and shows its
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -38,7 +39,7 @@ from flow.options import (
     SourceOptions,
     TrackOptions,
 )
-from flow.outputs import check_outputs, claimed
+from flow.outputs import IMAGE_SUFFIXES, PLOT_SUFFIXES, check_outputs, check_suffix, claimed
 from flow.quality import MAX_TYPICAL_SIGMA_PX
 from flow.scale import positive
 from refflow.io import versions, write_json
@@ -170,6 +171,11 @@ def cmd_pois(args: argparse.Namespace) -> int:
     from flow.figures import poi_figure
     from flow.methods.klt import KLT
 
+    out = Path(args.out)
+    check_suffix(out, IMAGE_SUFFIXES)
+    read = [("the video", args.input), *(("--mask", m) for m in args.mask or ()),
+            ("--calibration", args.calibration), ("--video-origin", args.video_origin)]
+    check_outputs([out], [(what, Path(p)) for what, p in read if p and Path(p).exists()])
     source_given, region = source_options(args), region_options(args)
     source = inputs.open_source(source_given, need_time=False)
     undistort, _ = inputs.undistorter(source_given, source)
@@ -194,6 +200,10 @@ def cmd_pois(args: argparse.Namespace) -> int:
 def cmd_plot(args: argparse.Namespace) -> int:
     from flow.figures import read_measurements, spectrum_figure
 
+    out = Path(args.out)
+    check_suffix(out, PLOT_SUFFIXES)
+    check_outputs([out], [(f"the CSV {p}", Path(p)) for p in args.csv]
+                  + [(f"{p}'s sidecar", Path(p).with_suffix(".json")) for p in args.csv])
     labels = args.label or []
     if labels and len(labels) != len(args.csv):
         raise InputError(f"--label given {len(labels)} times for {len(args.csv)} CSV files: one per file or none")
@@ -323,12 +333,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("pois", help="PNG of the mask POIs next to the corners KLT would use (paper Fig. 6)")
     _add_input_options(p)
     p.add_argument("--detector", choices=("harris", "shi-tomasi"), default="harris")
-    p.add_argument("--out", required=True, help="output PNG")
+    p.add_argument("--out", required=True, help=f"output image ({', '.join(IMAGE_SUFFIXES)})")
     p.set_defaults(func=cmd_pois)
 
     p = sub.add_parser("plot", help="time history and spectrum of measured CSVs, dominant frequency marked")
     p.add_argument("csv", nargs="+", help="CSV files of `refflow track` (several methods are overlaid)")
-    p.add_argument("--out", required=True, help="output PNG")
+    p.add_argument("--out", required=True, help=f"output figure ({', '.join(PLOT_SUFFIXES)})")
     p.add_argument("--label", action="append", help="legend label per CSV (default: the method in its sidecar)")
     p.add_argument("--units", choices=("auto", "px", "mm"), default="auto",
                    help="auto: mm where every CSV has a scale, else px")
@@ -345,6 +355,16 @@ def _claims(args: argparse.Namespace) -> list[Path]:
     """The files a command writes that a second run at the same time must not write too."""
     names = [getattr(args, option, None) for option in ("out", "raw_tracks")]
     return [Path(name) for name in names if isinstance(name, str) and name]
+
+
+def _os_error_text(err: OSError, args: argparse.Namespace) -> str:
+    """The one line of a file that could not be read or written, naming it (where the system
+    names none, as on a full disk, the command's outputs)."""
+    what = err.strerror or str(err)
+    where = err.filename or ", ".join(map(str, _claims(args))) or "a file it reads or writes"
+    if err.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"{what}: could not write {where} (free space on that disk, or choose another --out)"
+    return f"{what}: {where} (check the path and permissions)"
 
 
 class Terminated(BaseException):
@@ -386,8 +406,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     except OSError as err:
         # Files the user named that cannot be read or written (permissions, full disk).
-        print(f"refflow {args.command}: error: {err.strerror or err}: "
-              f"{err.filename or ''} (check the path and permissions)", file=sys.stderr)
+        print(f"refflow {args.command}: error: {_os_error_text(err, args)}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print(f"refflow {args.command}: interrupted; no output written", file=sys.stderr)

@@ -21,6 +21,9 @@ def check_outputs(outputs: list[Path], inputs: list[tuple[str, Path]], *, option
     folders = {path: what for path, what in taken.items() if path.is_dir()}
     for out in outputs:
         resolved = out.resolve()
+        if resolved.is_dir():
+            raise InputError(f"output {out} is an existing folder, not a file: choose another {option} "
+                             "(a file name, in that folder or elsewhere)")
         if resolved in taken:
             raise InputError(f"output {out} is the run's input ({taken[resolved]}): refflow never writes "
                              f"over an input; choose another {option}")
@@ -34,6 +37,32 @@ def check_outputs(outputs: list[Path], inputs: list[tuple[str, Path]], *, option
             raise InputError(f"output {out}: {parent} is a file, not a folder: choose another {option}")
         if not os.access(parent, os.W_OK | os.X_OK):
             raise InputError(f"output {out}: folder {parent} is not writable: choose another {option}")
+
+
+# What each figure writer can write (matplotlib's figures; OpenCV's images).
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+
+
+def check_suffix(path: Path, suffixes: tuple[str, ...], *, option: str = "--out") -> None:
+    """Refuse an output whose name does not say one of the formats the writer can write
+    (``myplot``, ``plot.txt``): the format is taken from the suffix."""
+    if path.suffix.lower() not in suffixes:
+        said = f"ends in {path.suffix!r}" if path.suffix else "has no extension"
+        raise InputError(f"{option} {path} {said}: the format is taken from the name; "
+                         f"name it {', '.join(suffixes[:-1])} or {suffixes[-1]}")
+
+
+@contextmanager
+def writing(path: Path) -> Iterator[None]:
+    """Name ``path`` in an ``OSError`` raised while it is written: a full disk names no file,
+    and a temporary's name would mean nothing to the user."""
+    try:
+        yield
+    except OSError as err:
+        if err.filename is not None and Path(err.filename) == path:
+            raise
+        raise OSError(err.errno, err.strerror or str(err), str(path)) from err
 
 
 def _lock_path(path: Path) -> Path:

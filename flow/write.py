@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from flow.options import FilterOptions, OutputOptions, RunInfo
-from flow.outputs import check_outputs
+from flow.outputs import check_outputs, writing
 from flow.scale import Scale
 from refflow import trackcsv
 from refflow.io import atomic_paths, finite_or_none, json_text, versions
@@ -77,15 +77,24 @@ def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list
         columns = trackcsv.columns(regions=tracks.region is not None)
         # Serialised first: a bad value fails before any file exists.
         sidecar_text = json_text(sidecar(run, filtering, notes + flagged, results, scale, mode, columns, started))
-    with atomic_paths(*output_names(outputs, inputs)) as temporaries:
-        pending = list(temporaries)
+    finals = output_names(outputs, inputs)
+    with atomic_paths(*finals) as temporaries:
+        # Each file's temporary, with the name an error about it gives (a full disk names none).
+        pending = list(zip(temporaries, finals, strict=True))
         if outputs.raw_tracks:
-            formats.save_raw_tracks(pending.pop(0), tracks, run.part_meta(notes))
+            tmp, final = pending.pop(0)
+            with writing(final):
+                formats.save_raw_tracks(tmp, tracks, run.part_meta(notes))
         if outputs.poi_tracks:
-            _write_poi_tracks(pending.pop(0), tracks, results, run.roi)
+            tmp, final = pending.pop(0)
+            with writing(final):
+                _write_poi_tracks(tmp, tracks, results, run.roi)
         if outputs.csv:
-            pending.pop(0).write_text(sidecar_text)
-            with pending.pop(0).open("w", newline="") as handle:
+            tmp, final = pending.pop(0)
+            with writing(final):
+                tmp.write_text(sidecar_text)
+            tmp, final = pending.pop(0)
+            with writing(final), tmp.open("w", newline="") as handle:
                 trackcsv.write(handle, [(label, formats.iter_rows(result, scale.mm_per_px))
                                         for label, result in results])
     return results
