@@ -352,9 +352,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _claims(args: argparse.Namespace) -> list[Path]:
-    """The files a command writes that a second run at the same time must not write too."""
-    names = [getattr(args, option, None) for option in ("out", "raw_tracks")]
-    return [Path(name) for name in names if isinstance(name, str) and name]
+    """The files a command writes that a second run at the same time must not write too: its
+    outputs, and the sidecar of a measurement (``--out a`` and ``--out a.csv`` share ``a.json``)."""
+    names = [getattr(args, option, None) for option in ("out", "raw_tracks", "save_poi_tracks")]
+    paths = [Path(name) for name in names if isinstance(name, str) and name]
+    if args.command in ("track", "merge") and isinstance(args.out, str) and args.out:
+        paths.append(Path(args.out).with_suffix(".json"))
+    return list(dict.fromkeys(paths))
 
 
 def _os_error_text(err: OSError, args: argparse.Namespace) -> str:

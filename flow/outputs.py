@@ -3,6 +3,7 @@ them is one of its inputs (refflow never writes over what it reads)."""
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -37,6 +38,34 @@ def check_outputs(outputs: list[Path], inputs: list[tuple[str, Path]], *, option
             raise InputError(f"output {out}: {parent} is a file, not a folder: choose another {option}")
         if not os.access(parent, os.W_OK | os.X_OK):
             raise InputError(f"output {out}: folder {parent} is not writable: choose another {option}")
+
+
+# A refflow sidecar is a few kB; a JSON this big is somebody else's (and is not read whole).
+_SIDECAR_MAX_BYTES = 16 << 20
+
+
+def check_sidecar(csv: Path, sidecar: Path, *, option: str = "--out") -> None:
+    """Refuse to replace an existing ``sidecar`` that is not refflow's sidecar of ``csv``: a
+    JSON of the user's (refflow never replaces a file it did not write), or the sidecar of
+    another output that shares it (``--out a`` and ``--out a.csv`` both describe themselves
+    in ``a.json``). An earlier run's sidecar of the same CSV is replaced, as the CSV is."""
+    if not sidecar.is_file():
+        return
+    data = None
+    try:
+        if sidecar.stat().st_size <= _SIDECAR_MAX_BYTES:
+            data = json.loads(sidecar.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        data = None
+    ours = isinstance(data, dict) and str(data.get("tool", "")).startswith("refflow ") and "columns" in data
+    if not ours:
+        raise InputError(f"{sidecar} exists and is not a refflow sidecar: refflow never replaces a file it did not "
+                         f"write; move it, or choose another {option}")
+    described = data.get("csv")
+    # (A sidecar written before sidecars named their CSV is taken for this CSV's.)
+    if isinstance(described, str) and described != csv.name:
+        raise InputError(f"{sidecar} is the sidecar of {csv.with_name(described)}, not of {csv}: outputs whose "
+                         f"names differ only in their extension share one sidecar; choose another {option}")
 
 
 # What each figure writer can write (matplotlib's figures; OpenCV's images).

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from flow.options import FilterOptions, OutputOptions, RunInfo
-from flow.outputs import check_outputs, writing
+from flow.outputs import check_outputs, check_sidecar, writing
 from flow.scale import Scale
 from refflow import trackcsv
 from refflow.io import atomic_paths, finite_or_none, json_text, versions
@@ -24,7 +24,10 @@ from refflow.io import atomic_paths, finite_or_none, json_text, versions
 def output_names(outputs: OutputOptions, inputs: list[tuple[str, Path]]) -> list[Path]:
     """The files a run writes, in writing order (the CSV last); checked before any work."""
     names = outputs.paths()
-    check_outputs(names, inputs, option="--out (the sidecar is <out>.json)")
+    option = "--out (the sidecar is <out>.json)"
+    check_outputs(names, inputs, option=option)
+    if outputs.csv:
+        check_sidecar(Path(outputs.csv), Path(outputs.csv).with_suffix(".json"), option=option)
     return names
 
 
@@ -76,7 +79,9 @@ def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list
             print(f"{run.tool}: warning: {note}", file=sys.stderr)
         columns = trackcsv.columns(regions=tracks.region is not None)
         # Serialised first: a bad value fails before any file exists.
-        sidecar_text = json_text(sidecar(run, filtering, notes + flagged, results, scale, mode, columns, started))
+        described = {**sidecar(run, filtering, notes + flagged, results, scale, mode, columns, started),
+                     "csv": Path(outputs.csv).name}  # which output it describes (two may share it: a, a.csv)
+        sidecar_text = json_text(described)
     finals = output_names(outputs, inputs)
     with atomic_paths(*finals) as temporaries:
         # Each file's temporary, with the name an error about it gives (a full disk names none).
