@@ -104,7 +104,7 @@ def build_method(name: str, params: dict[str, Any]) -> Any:
     except (TypeError, ValueError) as err:
         # The method constructors reject bad keyword values with ValueError: here that
         # value came from the command line, so it is the user's to fix.
-        raise InputError(f"bad --param for {name}: {err} (see `refflow methods`)") from None
+        raise InputError(f"bad --param for {name}: {err} (see `refflow methods --params {name}`)") from None
 
 
 def parse_frames(text: str | None) -> tuple[int, int | None] | None:

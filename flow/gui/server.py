@@ -215,6 +215,7 @@ class App:
         kinds, described = registry.kinds(), registry.describe()
         name = re.sub(r"[^A-Za-z0-9._-]", "_", self.video.stem)[:60].strip("._-")
         name = name if projects.NAME_PATTERN.fullmatch(name) else "run"
+        name = projects.free_name(self.folder.root, name)  # never the user's own clip.json, clip_mask.png
         saved = None
         project_file = self.folder.root / projects.files_of(name)["project"]
         if project_file.is_file():
@@ -243,6 +244,7 @@ class App:
 
         name = projects.check_name(body.get("name"))
         files = projects.files_of(name)
+        projects.check_files_free(self.folder.root, name)
         project = projects.from_page(body.get("project"), video=self.video, name=name, fps=self.fps,
                                      calibration=self.calibration)
         targets = {role: self.folder.path(file) for role, file in files.items()}

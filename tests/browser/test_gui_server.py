@@ -379,3 +379,35 @@ def test_values_starting_with_a_minus_reach_the_tool_as_values(tmp_path) -> None
 
     args = build_parser().parse_args(argv)
     assert (args.roi, args.between, args.known_length) == ("-4,0,50,50", "-5,2,40,2", -3.0)
+
+
+def test_the_page_never_replaces_a_file_it_did_not_write(tmp_path) -> None:
+    """`refflow gui clip.avi --out-dir <the video's folder>` beside the user's own clip.json and
+    clip_mask.png (issue 32, case 9): the page offers another run name, and saving under the
+    taken one is refused in one line; the user's files stay as they were. Its own files (a
+    run whose project it wrote) it replaces as before."""
+    from flow.gui.server import App
+
+    video = write_clip(tmp_path / "clip.avi")
+    mine = {tmp_path / "clip.json": b'{"my": "notes"}', tmp_path / "clip_mask.png": b"not refflow's"}
+    for path, content in mine.items():
+        path.write_bytes(content)
+    app = App(video, tmp_path)
+    try:
+        assert app.info()["name"] == "clip_2"
+        state = page(roi=None, regions=[{"label": "band", "polygon": [[10, 20], [80, 20], [80, 44], [10, 44]]}],
+                     background=[], scale={"mm_per_px": "0.25"}, options={"max_frames": "5"})
+        with pytest.raises(InputError) as refused:
+            app.save({"name": "clip", "project": state})
+        message = str(refused.value)
+        assert "clip_mask.png, clip.json in" in message and "were not written by refflow gui" in message
+        assert "choose another run name (e.g. clip_2)" in message and "\n" not in message
+        assert {path: path.read_bytes() for path in mine} == mine
+        assert not (tmp_path / "clip_project.json").exists()
+        saved = app.save({"name": "clip_2", "project": state})
+        assert (tmp_path / saved["files"]["mask"]).is_file()
+        app.save({"name": "clip_2", "project": state})  # its own files: replaced
+        assert app.info()["name"] == "clip_2"  # the page's own run, offered again
+    finally:
+        app.close()
+    assert {path: path.read_bytes() for path in mine} == mine
