@@ -208,6 +208,9 @@ def load_calibration(path: str | Path) -> dict[str, Any]:
     if dist is None or len(dist) not in DIST_COEFF_COUNTS or not all(math.isfinite(v) for v in dist):
         raise InputError(f"{name}: 'dist_coeffs' needs {', '.join(map(str, DIST_COEFF_COUNTS))} finite "
                          f"numbers, got {shown(data.get('dist_coeffs'))}: {again}")
+    if camera[6:] != [0.0, 0.0, 1.0]:
+        raise InputError(f"{name}: 'camera_matrix' has the last row {shown(camera[6:])}, a camera matrix's is "
+                         f"[0, 0, 1]: {again}")
     cleaned = {**data, "camera_matrix": np.reshape(camera, (3, 3)).tolist(), "dist_coeffs": dist}
     if "image_size" in data:
         size = _json_numbers(data["image_size"])
@@ -220,6 +223,118 @@ def load_calibration(path: str | Path) -> dict[str, Any]:
     return cleaned
 
 
+# A focal length (px) outside these multiples of the frame's diagonal is no lens on that sensor:
+# 0.1x is a fisheye far beyond 180 degrees, 100x a telescope's 0.6 degree field.
+FOCAL_PER_DIAGONAL = (0.1, 100.0)
+# Raw pixels on the frame's border, undistorted and distorted again, must land this close to
+# where they started: the scale points and the mask are carried through this inversion.
+ROUND_TRIP_PX = 0.05
+# The radial distortion's factor (distorted over ideal radius) stays within this either way over
+# the frame: the widest rectilinear lenses calibrated with OpenCV's model reach about 0.6 at the
+# corners; beyond 3 the undistorted image squeezes or stretches the frame's content out of view.
+MAX_RADIAL_SCALE = 3.0
+
+
+def check_fits_frame(camera: np.ndarray, dist: np.ndarray, frame_size: tuple[int, int],
+                     name: str = "calibration") -> None:
+    """Refuse a calibration that cannot belong to frames of ``frame_size`` (the calibrated
+    sensor's ``(width, height)``): its principal point outside them, a focal length no lens
+    has on them, or a distortion OpenCV's model cannot invert over them (a raw pixel of the
+    frame's border that does not come back from undistortion and distortion, a radial term
+    that folds back within the frame, so that two points of the scene land on one pixel, or
+    one that scales the frame's edge beyond :data:`MAX_RADIAL_SCALE`).
+
+    Another camera's intrinsics on a smaller video read the scale wrong by tens of per cent and
+    move every undistorted pixel: a number that looks right and is not.
+    """
+    width, height = frame_size
+    fx, fy, cx, cy = camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2]
+    other = "the calibration is for another camera or image size: calibrate at the video's resolution"
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        raise InputError(f"{name}: its principal point ({cx:.6g}, {cy:.6g}) lies outside the {width}x{height} "
+                         f"frame: {other} (a cropped recording: pass --video-origin)")
+    diagonal = math.hypot(width, height)
+    low, high = (k * diagonal for k in FOCAL_PER_DIAGONAL)
+    if not (low <= fx <= high and low <= fy <= high):
+        raise InputError(f"{name}: its focal length (fx {fx:.6g}, fy {fy:.6g} px) is not between "
+                         f"{FOCAL_PER_DIAGONAL[0]:g}x and {FOCAL_PER_DIAGONAL[1]:g}x the {width}x{height} frame's "
+                         f"diagonal ({low:.3g}-{high:.3g} px): {other}")
+    points = _border_points(frame_size)
+    rays = _undistorted_rays(camera, dist, points)
+    worst = _round_trip_px(camera, dist, points, rays)
+    radial = _radial_problem(camera, dist, frame_size, rays)
+    if not worst <= ROUND_TRIP_PX or radial:
+        why = radial or f"a pixel of the frame's border comes back {worst:.3g} px away from undistortion"
+        raise InputError(f"{name}: its distortion {shown([round(float(v), 6) for v in dist])} is beyond what "
+                         f"OpenCV's model inverts over the {width}x{height} frame ({why}): {other}, or calibrate again with views "
+                         "that reach the frame's corners")
+
+
+def _border_points(frame_size: tuple[int, int], per_side: int = 33) -> np.ndarray:
+    """Points along the frame's four edges and a coarse grid inside, ``(N, 2)`` raw pixels."""
+    width, height = frame_size
+    xs = np.linspace(0.0, width - 1.0, per_side)
+    ys = np.linspace(0.0, height - 1.0, per_side)
+    grid = np.stack(np.meshgrid(xs[::4], ys[::4]), axis=-1).reshape(-1, 2)
+    edges = [np.c_[xs, np.zeros_like(xs)], np.c_[xs, np.full_like(xs, height - 1.0)],
+             np.c_[np.zeros_like(ys), ys], np.c_[np.full_like(ys, width - 1.0), ys]]
+    return np.vstack([*edges, grid])
+
+
+def _undistorted_rays(camera: np.ndarray, dist: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Raw pixels ``(N, 2)`` undistorted as :func:`undistort_points` does it, in normalised
+    image coordinates (focal lengths from the principal point)."""
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    rays = cv2.undistortPoints(points.reshape(-1, 1, 2), camera, dist, None, None, None, criteria)
+    return rays.reshape(-1, 2)
+
+
+def _round_trip_px(camera: np.ndarray, dist: np.ndarray, points: np.ndarray, rays: np.ndarray) -> float:
+    """The largest distance (px) between ``points`` and their undistorted ``rays`` distorted
+    again; inf where the inversion gave no finite point."""
+    if not np.isfinite(rays).all():
+        return math.inf
+    back, _ = cv2.projectPoints(np.c_[rays, np.ones(len(rays))], np.zeros(3), np.zeros(3), camera, dist)
+    error = np.hypot(*(back.reshape(-1, 2) - points).T)
+    return float(error.max()) if np.isfinite(error).all() else math.inf
+
+
+def _radial_problem(camera: np.ndarray, dist: np.ndarray, frame_size: tuple[int, int],
+                    rays: np.ndarray) -> str | None:
+    """What is wrong with the radial distortion within the radius the frame reaches, or None:
+    it stops growing with the radius (it folds: two radii land on one), or it scales a radius by
+    more than :data:`MAX_RADIAL_SCALE` either way (no rectilinear lens that OpenCV's model
+    describes does; a fisheye needs its own model).
+
+    That radius is the larger of the undistorted frame's corners (what the undistorted image
+    shows) and the raw border's points once undistorted (a barrel-distorted frame's lie further
+    out)."""
+    width, height = frame_size
+    corners = np.array([[0.0, 0.0], [width, 0.0], [0.0, height], [width, height]])
+    reach = float(np.max(np.hypot((corners[:, 0] - camera[0, 2]) / camera[0, 0],
+                                  (corners[:, 1] - camera[1, 2]) / camera[1, 1])))
+    if np.isfinite(rays).all():
+        reach = max(reach, float(np.hypot(*rays.T).max()))
+    k = np.zeros(6)
+    radial = np.r_[dist[:2], dist[4:8]]  # k1 k2 (p1 p2) k3 k4 k5 k6
+    k[:radial.size] = radial
+    k1, k2, k3, k4, k5, k6 = k
+    r = np.linspace(0.0, reach, 2049)[1:]
+    r2 = r * r
+    denominator = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    factor = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / np.where(denominator > 0, denominator, np.nan)
+    distorted = r * factor
+    grows = np.isfinite(distorted) & (np.diff(np.r_[0.0, distorted]) > 0)
+    if not grows.all():
+        return (f"the radial term folds back within the frame, at {r[~grows][0]:.3g} focal lengths from the "
+                "centre")
+    worst = float(np.max(np.maximum(factor, 1 / factor)))
+    if worst > MAX_RADIAL_SCALE:
+        return (f"it scales a radius within the frame by {worst:.3g} against the centre, more than "
+                f"{MAX_RADIAL_SCALE:g}x")
+    return None
+
+
 class Undistorter:
     """Undistort ROI crops with the full-sensor camera model.
 
@@ -229,14 +344,15 @@ class Undistorter:
     """
 
     def __init__(self, calibration: dict[str, Any], roi: Roi, frame_size: tuple[int, int], *,
-                 video_origin: tuple[int, int] = (0, 0)) -> None:
+                 video_origin: tuple[int, int] = (0, 0), name: str = "calibration") -> None:
         camera = np.asarray(calibration["camera_matrix"], np.float64).reshape(3, 3)
         dist = np.asarray(calibration["dist_coeffs"], np.float64).ravel()
         cal_size = tuple(calibration.get("image_size", frame_size))
         if tuple(cal_size) != tuple(frame_size):
             raise InputError(
-                f"calibration is for {cal_size[0]}x{cal_size[1]} images but frames are "
+                f"{name} is for {cal_size[0]}x{cal_size[1]} images but frames are "
                 f"{frame_size[0]}x{frame_size[1]}: calibrate at the video resolution")
+        check_fits_frame(camera, dist, frame_size, name)
         shifted = camera.copy()
         shifted[0, 2] -= roi.x
         shifted[1, 2] -= roi.y

@@ -15,6 +15,7 @@ code 2, and no output file; anything else that goes wrong is a bug and shows its
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -38,7 +39,7 @@ from flow.options import (
     SourceOptions,
     TrackOptions,
 )
-from flow.outputs import check_outputs, claimed
+from flow.outputs import IMAGE_SUFFIXES, PLOT_SUFFIXES, check_outputs, check_suffix, claimed
 from flow.quality import MAX_TYPICAL_SIGMA_PX
 from flow.scale import positive
 from refflow.io import versions, write_json
@@ -115,6 +116,8 @@ def _counts(results: list[tuple[int, Any]]) -> str:
 
 
 def cmd_methods(args: argparse.Namespace) -> int:
+    if args.params:
+        return _print_parameters(args.params)
     width = max(len(n) for n in registry.available())
     kinds = registry.kinds()
     for name, summary in registry.describe().items():
@@ -122,6 +125,31 @@ def cmd_methods(args: argparse.Namespace) -> int:
     for name, reason in registry.unavailable().items():
         print(f"({name} unavailable: {reason})")
     return 0
+
+
+def _print_parameters(name: str) -> int:
+    """``refflow methods --params NAME``: every parameter of the method, with its type, default,
+    range and meaning (what ``--param KEY=VALUE`` accepts)."""
+    try:
+        table = registry.parameters(name)
+    except ValueError as err:
+        raise InputError(f"{err} (see `refflow methods`)") from None
+    print(f"{name}: {registry.describe()[name]}")
+    print(f"parameters (`refflow track --method {name} --param KEY=VALUE`, repeatable):")
+    rows = [("name", "type", "default", "range", "meaning")]
+    rows += [(p.name, p.type_text(), _value_text(p.default), p.range_text(), p.meaning) for p in table]
+    widths = [max(len(row[i]) for row in rows) for i in range(4)]
+    for row in rows:
+        print("  " + "  ".join(cell.ljust(width) for cell, width in zip(row[:4], widths, strict=True))
+              + "  " + row[4])
+    return 0
+
+
+def _value_text(value: Any) -> str:
+    """A default as ``--param`` spells it."""
+    if value is None or isinstance(value, bool):
+        return str(value).lower()
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -143,6 +171,11 @@ def cmd_pois(args: argparse.Namespace) -> int:
     from flow.figures import poi_figure
     from flow.methods.klt import KLT
 
+    out = Path(args.out)
+    check_suffix(out, IMAGE_SUFFIXES)
+    read = [("the video", args.input), *(("--mask", m) for m in args.mask or ()),
+            ("--calibration", args.calibration), ("--video-origin", args.video_origin)]
+    check_outputs([out], [(what, Path(p)) for what, p in read if p and Path(p).exists()])
     source_given, region = source_options(args), region_options(args)
     source = inputs.open_source(source_given, need_time=False)
     undistort, _ = inputs.undistorter(source_given, source)
@@ -167,6 +200,10 @@ def cmd_pois(args: argparse.Namespace) -> int:
 def cmd_plot(args: argparse.Namespace) -> int:
     from flow.figures import read_measurements, spectrum_figure
 
+    out = Path(args.out)
+    check_suffix(out, PLOT_SUFFIXES)
+    check_outputs([out], [(f"the CSV {p}", Path(p)) for p in args.csv]
+                  + [(f"{p}'s sidecar", Path(p).with_suffix(".json")) for p in args.csv])
     labels = args.label or []
     if labels and len(labels) != len(args.csv):
         raise InputError(f"--label given {len(labels)} times for {len(args.csv)} CSV files: one per file or none")
@@ -246,14 +283,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="refflow", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("methods", help="list measurement methods")
+    p = sub.add_parser("methods", help="list measurement methods, or one method's parameters")
+    p.add_argument("--params", metavar="NAME", help="list every parameter of method NAME: type, default, "
+                   "range and meaning (what --param KEY=VALUE accepts)")
     p.set_defaults(func=cmd_methods)
 
     p = sub.add_parser("track", help="measure displacement of the POIs against the reference frame")
     _add_input_options(p)
     p.add_argument("--method", help="method name (default: deepflow, else deepflow-opencv); see `refflow methods`")
     p.add_argument("--preset", choices=("ultrafast", "fast", "medium"), help="DIS preset")
-    p.add_argument("--param", action="append", metavar="KEY=VALUE", help="method parameter (repeatable)")
+    p.add_argument("--param", action="append", metavar="KEY=VALUE",
+                   help="method parameter (repeatable); `refflow methods --params NAME` lists them with their ranges")
     p.add_argument("--background-mask", help="mask PNG of static scene (wall, ground; raw video pixels): "
                    "the camera's motion measured there is removed from the POIs' (tripod shake, drift)")
     p.add_argument("--background-rect", help="static region X,Y,W,H (raw full-frame pixels), like --background-mask")
@@ -293,12 +333,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("pois", help="PNG of the mask POIs next to the corners KLT would use (paper Fig. 6)")
     _add_input_options(p)
     p.add_argument("--detector", choices=("harris", "shi-tomasi"), default="harris")
-    p.add_argument("--out", required=True, help="output PNG")
+    p.add_argument("--out", required=True, help=f"output image ({', '.join(IMAGE_SUFFIXES)})")
     p.set_defaults(func=cmd_pois)
 
     p = sub.add_parser("plot", help="time history and spectrum of measured CSVs, dominant frequency marked")
     p.add_argument("csv", nargs="+", help="CSV files of `refflow track` (several methods are overlaid)")
-    p.add_argument("--out", required=True, help="output PNG")
+    p.add_argument("--out", required=True, help=f"output figure ({', '.join(PLOT_SUFFIXES)})")
     p.add_argument("--label", action="append", help="legend label per CSV (default: the method in its sidecar)")
     p.add_argument("--units", choices=("auto", "px", "mm"), default="auto",
                    help="auto: mm where every CSV has a scale, else px")
@@ -312,9 +352,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _claims(args: argparse.Namespace) -> list[Path]:
-    """The files a command writes that a second run at the same time must not write too."""
-    names = [getattr(args, option, None) for option in ("out", "raw_tracks")]
-    return [Path(name) for name in names if isinstance(name, str) and name]
+    """The files a command writes that a second run at the same time must not write too: its
+    outputs, and the sidecar of a measurement (``--out a`` and ``--out a.csv`` share ``a.json``)."""
+    names = [getattr(args, option, None) for option in ("out", "raw_tracks", "save_poi_tracks")]
+    paths = [Path(name) for name in names if isinstance(name, str) and name]
+    if args.command in ("track", "merge") and isinstance(args.out, str) and args.out:
+        paths.append(Path(args.out).with_suffix(".json"))
+    return list(dict.fromkeys(paths))
+
+
+def _os_error_text(err: OSError, args: argparse.Namespace) -> str:
+    """The one line of a file that could not be read or written, naming it (where the system
+    names none, as on a full disk, the command's outputs)."""
+    what = err.strerror or str(err)
+    where = err.filename or ", ".join(map(str, _claims(args))) or "a file it reads or writes"
+    if err.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"{what}: could not write {where} (free space on that disk, or choose another --out)"
+    return f"{what}: {where} (check the path and permissions)"
 
 
 class Terminated(BaseException):
@@ -356,8 +410,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     except OSError as err:
         # Files the user named that cannot be read or written (permissions, full disk).
-        print(f"refflow {args.command}: error: {err.strerror or err}: "
-              f"{err.filename or ''} (check the path and permissions)", file=sys.stderr)
+        print(f"refflow {args.command}: error: {_os_error_text(err, args)}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print(f"refflow {args.command}: interrupted; no output written", file=sys.stderr)

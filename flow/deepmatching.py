@@ -42,7 +42,7 @@ import math
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 
 import cv2
@@ -50,7 +50,7 @@ import numpy as np
 from numba import njit
 
 from flow.checks import check_grey_pair
-from flow.params import check_fields
+from flow.params import bounds, check_fields, flag
 
 # The kernels keep IEEE arithmetic (no fastmath): with LLVM free to reassociate sums, a freshly
 # compiled kernel and the same kernel loaded from numba's cache gave different bytes, so the
@@ -72,7 +72,7 @@ class MatchParams:
     downscale : int
         Integer factor the images are reduced by before matching (1 = none).
     ngh_rad : float or None
-        Search radius in full-resolution pixels (``<= 0``: whole image, slow). None (the
+        Search radius in full-resolution pixels (0: whole image, slow). None (the
         default) scales it with the image: :data:`REACH` of its longer side, at least
         :data:`MIN_RADIUS` px, so that a larger view of a moving structure is searched as far.
     max_patch : int
@@ -91,16 +91,23 @@ class MatchParams:
         Drop atomic matches whose normalised correlation is below this.
     """
 
-    downscale: int = 2
-    ngh_rad: float | None = None
-    max_patch: int = 32
-    presmooth_sigma: float = 1.0
-    desc_sigma: float = 1.0
-    desc_power: float = 0.5
-    aggregation_power: float = 1.4
-    reciprocal: bool = True
-    reciprocal_tol: float = 3.0
-    min_score: float = 0.0
+    # Ranges (``refflow methods --params deepflow``): what the matching means, and what keeps
+    # its cost bounded (a radius or patch beyond any frame adds nothing but work).
+    downscale: int = field(default=2, metadata=bounds(1, 8, "factor the images are reduced by before matching"))
+    ngh_rad: float | None = field(default=None, metadata=bounds(
+        0, 10000, "search radius in full-resolution px (0: the whole image, slow)",
+        none_means=f"{REACH:g} of the frame's longer side, at least {MIN_RADIUS:g} px"))
+    max_patch: int = field(default=32, metadata=bounds(8, 512, "largest patch side in downscaled px"))
+    presmooth_sigma: float = field(default=1.0, metadata=bounds(0, 10, "Gaussian smoothing before the gradient, px"))
+    desc_sigma: float = field(default=1.0, metadata=bounds(0, 10, "Gaussian smoothing of each orientation map, px"))
+    desc_power: float = field(default=0.5, metadata=bounds(0, 4, "power non-linearity of the orientation maps",
+                                                           low_open=True))
+    aggregation_power: float = field(default=1.4, metadata=bounds(0, 4, "rectification exponent after each "
+                                                                  "aggregation", low_open=True))
+    reciprocal: bool = field(default=True, metadata=flag("keep only forward-backward consistent matches"))
+    reciprocal_tol: float = field(default=3.0, metadata=bounds(0, 1000, "allowed forward-backward mismatch, "
+                                                               "downscaled px"))
+    min_score: float = field(default=0.0, metadata=bounds(0, 1, "drop atomic matches correlating below this"))
 
     def __post_init__(self) -> None:
         check_fields(self)

@@ -61,8 +61,9 @@ def undistorter(options: SourceOptions, source: FrameSource) -> tuple[Any, dict[
     from flow.calibration import Undistorter, load_calibration
 
     calibration = load_calibration(options.calibration)
+    name = f"calibration file {str(options.calibration)!r}"
     if origin == (0, 0):
-        return Undistorter(calibration, source.roi, source.size), calibration
+        return Undistorter(calibration, source.roi, source.size, name=name), calibration
     sensor = tuple(calibration.get("image_size", ()))
     if len(sensor) != 2:
         raise InputError(f"calibration file {options.calibration!r} has no image_size: --video-origin needs "
@@ -72,7 +73,7 @@ def undistorter(options: SourceOptions, source: FrameSource) -> tuple[Any, dict[
     if on_sensor.x + source.size[0] - roi.x > sensor[0] or on_sensor.y + source.size[1] - roi.y > sensor[1]:
         raise InputError(f"a {source.size[0]}x{source.size[1]} video at --video-origin {origin[0]},{origin[1]} "
                          f"reaches beyond the {sensor[0]}x{sensor[1]} calibrated sensor")
-    return Undistorter(calibration, on_sensor, sensor, video_origin=origin), calibration
+    return Undistorter(calibration, on_sensor, sensor, video_origin=origin, name=name), calibration
 
 
 def calibration_summary(options: SourceOptions, calibration: dict[str, Any] | None) -> dict[str, Any] | None:

@@ -89,6 +89,30 @@ def significant_bits(image: np.ndarray) -> int:
     return max(8, top.bit_length())
 
 
+# Frame rates a camera can have: one frame in 11 days (a slow time-lapse) to 10^10 frames per
+# second (beyond the fastest framing cameras, about 10^8). Outside them the number is a typing
+# error, and index / fps may not even be finite (--fps 4e-320 gives time_s = inf).
+FPS_RANGE = (1e-6, 1e10)
+
+
+def check_fps(fps: float | None, name: str = "--fps") -> None:
+    """Refuse a frame rate (None: not given) that is not a camera's."""
+    if fps is None:
+        return
+    if not (math.isfinite(fps) and fps > 0):
+        raise InputError(f"{name} {fps} is not positive: pass the camera frame rate in frames per second")
+    if not FPS_RANGE[0] <= fps <= FPS_RANGE[1]:
+        raise InputError(f"{name} {fps:g} is no camera's frame rate ({FPS_RANGE[0]:g} to {FPS_RANGE[1]:g} frames "
+                         "per second): pass the camera frame rate in frames per second")
+
+
+# Frame intervals that differ from their median by more than this share (and by more than
+# VFR_SLACK_S, a container's time base rounding: Matroska keeps milliseconds) make a clip's
+# frame rate variable.
+VFR_SHARE = 0.1
+VFR_SLACK_S = 0.0015
+
+
 # OpenCV's display rotations (CAP_PROP_ORIENTATION_META) as cv2.rotate codes.
 DISPLAY_ROTATIONS = {90: cv2.ROTATE_90_CLOCKWISE, 180: cv2.ROTATE_180, 270: cv2.ROTATE_90_COUNTERCLOCKWISE}
 
@@ -295,13 +319,13 @@ class FrameSource:
         self.path = Path(path)
         if not self.path.exists():
             raise InputError(f"input {str(self.path)!r} does not exist: check the path")
-        if fps is not None and not (math.isfinite(fps) and fps > 0):
-            raise InputError(f"--fps {fps} is not positive: pass the camera frame rate in frames per second")
+        check_fps(fps)
         self.is_folder = self.path.is_dir()
         self.allow_truncated = allow_truncated
         self.frames_read = 0
         self.truncated = False
         self.notes: list[str] = []
+        self._unstamped = 0  # frames the decoder gave no time stamp (time_s = index / fps)
         self._time_scale = 1.0  # capture time per second of the file's timeline
         self._deep_gain: float | None = None  # 16-bit images: their constant gain to the 8-bit scale
         self.bit_depth = 8  # significant bits of the data measured (16-bit images: the first's)
@@ -469,6 +493,7 @@ class FrameSource:
         # Decoders report the presentation time of the frame just read; some give 0
         # for every frame, so fall back to index/fps unless it advances.
         if index > 0 and msec <= 0 and math.isfinite(self.fps):
+            self._unstamped += 1
             return index / self.fps
         if index == 0 and msec <= 0:
             return 0.0
@@ -498,6 +523,51 @@ class FrameSource:
         finally:
             cap.release()
         self._check_complete(np.asarray(times))
+
+    def clock(self, frame: np.ndarray, time_s: np.ndarray) -> tuple[np.ndarray, list[str]]:
+        """The time stamps of the measured frames ``frame`` (read as ``time_s``), checked, and
+        what the user should know of them (for the notes and the console).
+
+        A video's own time stamps stand where they increase from frame to frame, a variable
+        frame rate included (noted: its frames are not evenly spaced). Where one does not (a
+        damaged file: a stamp equal to or before the one of the frame before it), none of them
+        can be trusted, and every frame's time becomes its index over the frame rate (--fps,
+        else the header's), noted: an approximation where the rate varied, never a clock that
+        runs backwards. Images and camera files have no such stamps: their times stand.
+        """
+        times = np.asarray(time_s, np.float64)
+        if self.is_folder or self._camera is not None or times.size == 0:
+            return times, []
+        name = self.path.name
+        order = np.argsort(frame, kind="stable")
+        steps = np.diff(times[order])
+        rate = "the header's rate" if self.fps == self.header_fps else "--fps"
+        bad = np.flatnonzero(~(steps > 0))
+        if bad.size or not np.isfinite(times).all():
+            if not (math.isfinite(self.fps) and self.fps > 0):
+                raise InputError(f"video {str(self.path)!r} has damaged time stamps and no frame rate: pass --fps "
+                                 "(the camera frame rate) to time its frames")
+            first = int(bad[0]) if bad.size else 0
+            at, before = int(frame[order][first + 1]), int(frame[order][first])
+            where = (f"frame {at}'s {times[order][first + 1]:.6g} s is not after frame {before}'s "
+                     f"{times[order][first]:.6g} s" if bad.size else "a time stamp is not finite")
+            return (np.asarray(frame, np.float64) / self.fps,
+                    [f"video {name}: its time stamps are damaged ({where}; {bad.size} of {steps.size} steps do "
+                     f"not advance): time_s = frame / {self.fps:.6g} fps ({rate}) for every frame; pass --fps "
+                     "if the camera's rate differs"])
+        notes = []
+        if self._unstamped:
+            notes.append(f"video {name}: the decoder gave {self._unstamped} frames no time stamp: their time_s is "
+                         f"frame / {self.fps:.6g} fps ({rate})")
+        if steps.size >= 2:
+            typical = float(np.median(steps))
+            uneven = np.abs(steps - typical) > max(VFR_SHARE * typical, VFR_SLACK_S * self._time_scale)
+            if uneven.any():
+                notes.append(f"video {name} has a variable frame rate: its frames are {steps.min():.6g} to "
+                             f"{steps.max():.6g} s apart (median {typical:.6g} s); time_s is each frame's own time "
+                             "stamp, not a constant rate (plot, modal and export put it on a uniform clock of "
+                             "the median interval)")
+        return times, notes
 
     def _check_complete(self, times: np.ndarray) -> None:
         """After the last decodable frame: truncated file, or only a header estimate?"""

@@ -3,6 +3,7 @@ them is one of its inputs (refflow never writes over what it reads)."""
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -21,6 +22,9 @@ def check_outputs(outputs: list[Path], inputs: list[tuple[str, Path]], *, option
     folders = {path: what for path, what in taken.items() if path.is_dir()}
     for out in outputs:
         resolved = out.resolve()
+        if resolved.is_dir():
+            raise InputError(f"output {out} is an existing folder, not a file: choose another {option} "
+                             "(a file name, in that folder or elsewhere)")
         if resolved in taken:
             raise InputError(f"output {out} is the run's input ({taken[resolved]}): refflow never writes "
                              f"over an input; choose another {option}")
@@ -34,6 +38,60 @@ def check_outputs(outputs: list[Path], inputs: list[tuple[str, Path]], *, option
             raise InputError(f"output {out}: {parent} is a file, not a folder: choose another {option}")
         if not os.access(parent, os.W_OK | os.X_OK):
             raise InputError(f"output {out}: folder {parent} is not writable: choose another {option}")
+
+
+# A refflow sidecar is a few kB; a JSON this big is somebody else's (and is not read whole).
+_SIDECAR_MAX_BYTES = 16 << 20
+
+
+def check_sidecar(csv: Path, sidecar: Path, *, option: str = "--out") -> None:
+    """Refuse to replace an existing ``sidecar`` that is not refflow's sidecar of ``csv``: a
+    JSON of the user's (refflow never replaces a file it did not write), or the sidecar of
+    another output that shares it (``--out a`` and ``--out a.csv`` both describe themselves
+    in ``a.json``). An earlier run's sidecar of the same CSV is replaced, as the CSV is."""
+    if not sidecar.is_file():
+        return
+    data = None
+    try:
+        if sidecar.stat().st_size <= _SIDECAR_MAX_BYTES:
+            data = json.loads(sidecar.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        data = None
+    ours = isinstance(data, dict) and str(data.get("tool", "")).startswith("refflow ") and "columns" in data
+    if not ours:
+        raise InputError(f"{sidecar} exists and is not a refflow sidecar: refflow never replaces a file it did not "
+                         f"write; move it, or choose another {option}")
+    described = data.get("csv")
+    # (A sidecar written before sidecars named their CSV is taken for this CSV's.)
+    if isinstance(described, str) and described != csv.name:
+        raise InputError(f"{sidecar} is the sidecar of {csv.with_name(described)}, not of {csv}: outputs whose "
+                         f"names differ only in their extension share one sidecar; choose another {option}")
+
+
+# What each figure writer can write (matplotlib's figures; OpenCV's images).
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+
+
+def check_suffix(path: Path, suffixes: tuple[str, ...], *, option: str = "--out") -> None:
+    """Refuse an output whose name does not say one of the formats the writer can write
+    (``myplot``, ``plot.txt``): the format is taken from the suffix."""
+    if path.suffix.lower() not in suffixes:
+        said = f"ends in {path.suffix!r}" if path.suffix else "has no extension"
+        raise InputError(f"{option} {path} {said}: the format is taken from the name; "
+                         f"name it {', '.join(suffixes[:-1])} or {suffixes[-1]}")
+
+
+@contextmanager
+def writing(path: Path) -> Iterator[None]:
+    """Name ``path`` in an ``OSError`` raised while it is written: a full disk names no file,
+    and a temporary's name would mean nothing to the user."""
+    try:
+        yield
+    except OSError as err:
+        if err.filename is not None and Path(err.filename) == path:
+            raise
+        raise OSError(err.errno, err.strerror or str(err), str(path)) from err
 
 
 def _lock_path(path: Path) -> Path:

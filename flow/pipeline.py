@@ -23,9 +23,10 @@ import numpy as np
 
 from flow import inputs, registry
 from flow.errors import InputError
-from flow.io import FrameSource
+from flow.io import FrameSource, check_fps
 from flow.options import FilterOptions, FramesInfo, InputInfo, MergeOptions, RunInfo, TrackOptions
-from flow.scale import NO_SCALE_NOTE, Scale, check_scale_options, measurement_scale, positive
+from flow.reference import check as check_reference
+from flow.scale import NO_SCALE_NOTE, Scale, check_scale_options, measurement_scale
 from flow.write import output_names, write_outputs
 from refflow.io import finite_or_none
 
@@ -103,7 +104,7 @@ def build_method(name: str, params: dict[str, Any]) -> Any:
     except (TypeError, ValueError) as err:
         # The method constructors reject bad keyword values with ValueError: here that
         # value came from the command line, so it is the user's to fix.
-        raise InputError(f"bad --param for {name}: {err} (see `refflow methods`)") from None
+        raise InputError(f"bad --param for {name}: {err} (see `refflow methods --params {name}`)") from None
 
 
 def parse_frames(text: str | None) -> tuple[int, int | None] | None:
@@ -150,6 +151,8 @@ def track(options: TrackOptions) -> Outcome:
     read_paths = options.input_paths()
     output_names(options.outputs, read_paths)
     setup = _set_up(options, notes, name, sparse)
+    check_reference(setup.source, options.reference_frame, options.reference_average, setup.labels > 0,
+                    setup.undistort)
     tracks = _track_frames(options, setup, method, lambda: build_method(name, params), sparse, jobs, frames, notes)
     if not setup.scale.given:
         notes.append(NO_SCALE_NOTE)
@@ -179,7 +182,7 @@ def _checked_jobs(options: TrackOptions, notes: list[str]) -> int:
     """Check the options that need no file; returns the threads to measure with."""
     check_scale_options(options.scale)
     check_filter_options(options.filter)
-    positive("--fps", options.source.fps, "the camera frame rate in frames per second")
+    check_fps(options.source.fps)
     if options.max_frames is not None and options.max_frames < 1:
         raise InputError(f"--max-frames {options.max_frames} must be >= 1")
     if options.jobs is not None and options.jobs < 1:
@@ -247,6 +250,10 @@ def _track_frames(options: TrackOptions, setup: _Setup, method: Any, new_method:
                                         progress=options.progress, store_dir=store_dir,
                                         background=setup.background, mask=setup.labels)
     notes.extend(setup.source.notes)
+    time_s, clock_notes = setup.source.clock(tracks.frame, tracks.time_s)
+    for note in clock_notes:
+        _note(notes, note)
+    tracks = replace(tracks, time_s=time_s)
     for warning in caught:
         notes.append(str(warning.message))
         print(f"refflow track: warning: {warning.message}", file=sys.stderr)

@@ -17,7 +17,7 @@ from typing import Any
 from flow.methods import base
 from flow.methods.base import register, register_unavailable
 
-__all__ = ["available", "describe", "get_method", "kinds", "register", "register_unavailable",
+__all__ = ["available", "describe", "get_method", "kinds", "parameters", "register", "register_unavailable",
            "unavailable"]
 
 # The built-in method modules, loaded in this order on first use (a command that asks for no
@@ -66,13 +66,31 @@ def kinds() -> dict[str, str]:
     return {name: base._REGISTRY[name].kind for name in sorted(base._REGISTRY)}
 
 
-def get_method(name: str, **params: Any) -> Any:
-    """Instantiate the method registered as ``name`` with keyword parameters."""
+def _entry(name: str) -> Any:
     _load_builtin_methods()
     try:
-        entry = base._REGISTRY[name]
+        return base._REGISTRY[name]
     except KeyError:
+        why = base._UNAVAILABLE.get(name)
+        if why:
+            raise ValueError(f"method {name!r} is not available here: {why}") from None
         raise ValueError(
             f"unknown method {name!r}; available: {', '.join(sorted(base._REGISTRY))}"
         ) from None
+
+
+def parameters(name: str) -> tuple[Any, ...]:
+    """The keyword parameters of the method ``name``, each a :class:`flow.params.Param` (type,
+    default, range, meaning), in the order the method declares them."""
+    return tuple(getattr(_entry(name).factory, "parameters", ()))
+
+
+def get_method(name: str, **params: Any) -> Any:
+    """Instantiate the method registered as ``name`` with keyword parameters (each checked
+    against its declared range before the method is built)."""
+    entry = _entry(name)
+    declared = [param.name for param in getattr(entry.factory, "parameters", ())]
+    unknown = sorted(set(params) - set(declared))
+    if declared and unknown:
+        raise ValueError(f"unknown parameter(s) {', '.join(unknown)}; {name} takes {', '.join(declared)}")
     return entry.factory(**params)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from decimal import Decimal
 from typing import Any
 
 from flow.errors import InputError
@@ -78,26 +79,55 @@ def measurement_scale(options: ScaleOptions, calibration: dict[str, Any] | None,
 def _scale_from_file(path: str, undistort_points: Any, frame_size: tuple[int, int] | None) -> tuple[float, str]:
     """``(mm_per_px, how)`` from a JSON file: its ``mm_per_px``, or a known length
     ``known_length_mm`` between two raw video points ``between_px`` [X1, Y1, X2, Y2]
-    (measured in the undistorted image with a calibration, like --known-length)."""
-    from flow.calibration import scale_from_known_length
-
+    (measured in the undistorted image with a calibration, like --known-length); a file
+    holding both must give the same scale with each (:func:`_agree`)."""
     data = load_json(path, f"scale file {path}")
     data = data if isinstance(data, dict) else {}
     if "known_length_mm" in data or "between_px" in data:
-        length, between = data.get("known_length_mm"), data.get("between_px")
-        number = json_number(length)
-        points = [json_number(v) for v in between] if isinstance(between, list) else []
-        if not (number is not None and 0 < number < math.inf and len(points) == 4
-                and all(v is not None and math.isfinite(v) for v in points)):
-            raise InputError(f"scale file {path}: 'known_length_mm' needs a positive number and 'between_px' "
-                             f"four numbers X1,Y1,X2,Y2, got {shown(length)} and {shown(between)}")
-        text = ",".join(f"{v:.6f}" for v in points)
-        mm_per_px = scale_from_known_length(number, text, undistort_points, frame_size=frame_size)
-        where = " (undistorted)" if undistort_points is not None else ""
-        return mm_per_px, f"known length {number} mm between {text} from {path}{where}"
+        mm_per_px, how = _known_length_in_file(path, data, undistort_points, frame_size)
+        if "mm_per_px" in data:
+            _file_mm_per_px(path, data)
+            _agree(path, data["mm_per_px"], mm_per_px)
+        return mm_per_px, how
+    return _file_mm_per_px(path, data), f"mm_per_px from {path}"
+
+
+def _known_length_in_file(path: str, data: dict[str, Any], undistort_points: Any,
+                          frame_size: tuple[int, int] | None) -> tuple[float, str]:
+    from flow.calibration import scale_from_known_length
+
+    length, between = data.get("known_length_mm"), data.get("between_px")
+    number = json_number(length)
+    points = [json_number(v) for v in between] if isinstance(between, list) else []
+    if not (number is not None and 0 < number < math.inf and len(points) == 4
+            and all(v is not None and math.isfinite(v) for v in points)):
+        raise InputError(f"scale file {path}: 'known_length_mm' needs a positive number and 'between_px' "
+                         f"four numbers X1,Y1,X2,Y2, got {shown(length)} and {shown(between)}")
+    text = ",".join(f"{v:.6f}" for v in points)
+    mm_per_px = scale_from_known_length(number, text, undistort_points, frame_size=frame_size)
+    where = " (undistorted)" if undistort_points is not None else ""
+    return mm_per_px, f"known length {number} mm between {text} from {path}{where}"
+
+
+def _file_mm_per_px(path: str, data: dict[str, Any]) -> float:
     value = data.get("mm_per_px")
     number = json_number(value)
     if number is None or not 0 < number < math.inf:
         raise InputError(f"scale file {path} needs a positive number under 'mm_per_px' (or "
                          f"'known_length_mm' and 'between_px'), got {shown(value)}")
-    return number, f"mm_per_px from {path}"
+    return number
+
+
+def _agree(path: str, written: int | float, from_length: float) -> None:
+    """Refuse a scale file whose ``mm_per_px`` and known length give two scales.
+
+    They agree when the written ``mm_per_px`` is the known length's scale rounded to the
+    digits it was written with (0.052 stands for 0.0523, not for 0.06): a file that states
+    its scale twice, once rounded, is consistent; one whose two statements differ is
+    ambiguous, and picking one would silently make the other wrong.
+    """
+    half_unit = 0.5 * 10.0 ** Decimal(repr(written)).as_tuple().exponent  # 10 -> 0.5, 0.52 -> 0.005
+    if abs(written - from_length) <= max(half_unit, 1e-9 * from_length):
+        return
+    raise InputError(f"scale file {path} gives two scales: 'mm_per_px' {written!r} and 'known_length_mm' over "
+                     f"'between_px' {from_length:.6g} mm per pixel: keep one of them in the file")

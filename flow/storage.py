@@ -5,9 +5,11 @@ memory stays constant whatever the clip length; written out to ``.npz`` the same
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +81,7 @@ class PoiStore:
     def __init__(self, n_points: int, *, directory: str | Path | None = None) -> None:
         self.n_points = int(n_points)
         self.n_frames = 0
+        self._where = Path(directory) if directory is not None else Path(tempfile.gettempdir())
         self._files = [tempfile.TemporaryFile(prefix=".refflow-poi-", dir=directory) for _ in range(2)]
 
     def append(self, dx: np.ndarray, dy: np.ndarray) -> None:
@@ -86,14 +89,27 @@ class PoiStore:
 
     def extend(self, dx: np.ndarray, dy: np.ndarray) -> None:
         """Append a block of rows ``(n, n_points)``."""
-        for handle, rows in zip(self._files, (dx, dy), strict=True):
-            handle.write(np.ascontiguousarray(rows, np.float32).tobytes())
+        with self._named():
+            for handle, rows in zip(self._files, (dx, dy), strict=True):
+                handle.write(np.ascontiguousarray(rows, np.float32).tobytes())
         self.n_frames += len(dx)
+
+    @contextlib.contextmanager
+    def _named(self) -> Iterator[None]:
+        # A full disk says no file name, and the store's files have none: name its folder.
+        try:
+            yield
+        except OSError as err:
+            if err.filename is not None:
+                raise
+            raise OSError(err.errno, err.strerror or str(err),
+                          f"{self._where} (the run's per-POI store, beside the output)") from err
 
     def arrays(self) -> tuple[DiskMatrix, DiskMatrix]:
         """Finish the store: its rows as read-only ``(n_frames, n_points)`` matrices (they own the files)."""
-        for handle in self._files:
-            handle.flush()
+        with self._named():
+            for handle in self._files:
+                handle.flush()
         matrices = tuple(DiskMatrix(handle, (self.n_frames, self.n_points)) for handle in self._files)
         self._files = []
         return matrices  # type: ignore[return-value]

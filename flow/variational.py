@@ -37,14 +37,14 @@ References
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 from numba import njit
 
 from flow.checks import check_grey_pair, check_shape
-from flow.params import check_fields
+from flow.params import bounds, check_fields
 
 # The kernels keep IEEE arithmetic (no fastmath): with LLVM free to reassociate sums, a freshly
 # compiled kernel and the same kernel loaded from numba's cache gave different bytes, so the
@@ -81,22 +81,27 @@ class VariationalParams:
         has this standard deviation (0 disables).
     """
 
-    alpha: float = 0.7
-    beta: float = 32.0
-    delta: float = 0.5
-    gamma: float = 5.0
-    kappa: float = 10.0
-    sigma: float = 0.6
-    eta: float = 0.95
-    min_size: int = 25
-    n_outer: int = 5
-    n_sor: int = 25
-    omega: float = 1.6
-    eps: float = 0.001
-    zeta: float = 0.5
-    match_max_scale: float = 0.5
-    contrast_std: float = 0.15
-    edge_sigma: float = 2.0
+    # Ranges (``refflow methods --params deepflow``): where the energy means something and the
+    # solver converges (SOR needs 0 < omega < 2), and the work stays bounded (iterations, a
+    # pyramid factor close to 1 multiplies the levels, a blur's kernel grows with its sigma).
+    alpha: float = field(default=0.7, metadata=bounds(0, 100, "smoothness weight", low_open=True))
+    beta: float = field(default=32.0, metadata=bounds(0, 1000, "matching-term weight (0: no matching)"))
+    delta: float = field(default=0.5, metadata=bounds(0, 100, "brightness constancy weight"))
+    gamma: float = field(default=5.0, metadata=bounds(0, 100, "gradient constancy weight"))
+    kappa: float = field(default=10.0, metadata=bounds(0, 100, "edge-aware smoothness (0: isotropic)"))
+    sigma: float = field(default=0.6, metadata=bounds(0, 10, "pre-smoothing of both frames, px"))
+    eta: float = field(default=0.95, metadata=bounds(0.1, 0.98, "pyramid factor between levels"))
+    min_size: int = field(default=25, metadata=bounds(8, 4096, "smallest pyramid level side, px"))
+    n_outer: int = field(default=5, metadata=bounds(1, 20, "fixed-point iterations per level"))
+    n_sor: int = field(default=25, metadata=bounds(1, 200, "SOR sweeps per fixed-point iteration"))
+    omega: float = field(default=1.6, metadata=bounds(0, 2, "SOR relaxation", low_open=True, high_open=True))
+    eps: float = field(default=0.001, metadata=bounds(0, 1, "Charbonnier epsilon", low_open=True))
+    zeta: float = field(default=0.5, metadata=bounds(0, 10, "data-term normalisation constant", low_open=True))
+    match_max_scale: float = field(default=0.5, metadata=bounds(0, 1, "the matching term acts on levels at or "
+                                                                "coarser than this scale"))
+    contrast_std: float = field(default=0.15, metadata=bounds(0, 1, "frames scaled to this standard deviation "
+                                                              "(0: not scaled)"))
+    edge_sigma: float = field(default=2.0, metadata=bounds(0, 20, "blur of the reference for the edge map, px"))
 
     def __post_init__(self) -> None:
         check_fields(self)

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from flow.options import FilterOptions, OutputOptions, RunInfo
-from flow.outputs import check_outputs
+from flow.outputs import check_outputs, check_sidecar, writing
 from flow.scale import Scale
 from refflow import trackcsv
 from refflow.io import atomic_paths, finite_or_none, json_text, versions
@@ -24,7 +24,10 @@ from refflow.io import atomic_paths, finite_or_none, json_text, versions
 def output_names(outputs: OutputOptions, inputs: list[tuple[str, Path]]) -> list[Path]:
     """The files a run writes, in writing order (the CSV last); checked before any work."""
     names = outputs.paths()
-    check_outputs(names, inputs, option="--out (the sidecar is <out>.json)")
+    option = "--out (the sidecar is <out>.json)"
+    check_outputs(names, inputs, option=option)
+    if outputs.csv:
+        check_sidecar(Path(outputs.csv), Path(outputs.csv).with_suffix(".json"), option=option)
     return names
 
 
@@ -76,16 +79,27 @@ def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list
             print(f"{run.tool}: warning: {note}", file=sys.stderr)
         columns = trackcsv.columns(regions=tracks.region is not None)
         # Serialised first: a bad value fails before any file exists.
-        sidecar_text = json_text(sidecar(run, filtering, notes + flagged, results, scale, mode, columns, started))
-    with atomic_paths(*output_names(outputs, inputs)) as temporaries:
-        pending = list(temporaries)
+        described = {**sidecar(run, filtering, notes + flagged, results, scale, mode, columns, started),
+                     "csv": Path(outputs.csv).name}  # which output it describes (two may share it: a, a.csv)
+        sidecar_text = json_text(described)
+    finals = output_names(outputs, inputs)
+    with atomic_paths(*finals) as temporaries:
+        # Each file's temporary, with the name an error about it gives (a full disk names none).
+        pending = list(zip(temporaries, finals, strict=True))
         if outputs.raw_tracks:
-            formats.save_raw_tracks(pending.pop(0), tracks, run.part_meta(notes))
+            tmp, final = pending.pop(0)
+            with writing(final):
+                formats.save_raw_tracks(tmp, tracks, run.part_meta(notes))
         if outputs.poi_tracks:
-            _write_poi_tracks(pending.pop(0), tracks, results, run.roi)
+            tmp, final = pending.pop(0)
+            with writing(final):
+                _write_poi_tracks(tmp, tracks, results, run.roi)
         if outputs.csv:
-            pending.pop(0).write_text(sidecar_text)
-            with pending.pop(0).open("w", newline="") as handle:
+            tmp, final = pending.pop(0)
+            with writing(final):
+                tmp.write_text(sidecar_text)
+            tmp, final = pending.pop(0)
+            with writing(final), tmp.open("w", newline="") as handle:
                 trackcsv.write(handle, [(label, formats.iter_rows(result, scale.mm_per_px))
                                         for label, result in results])
     return results

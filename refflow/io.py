@@ -61,13 +61,17 @@ def atomic_paths(*paths: str | os.PathLike[str]) -> Iterator[list[Path]]:
         for tmp, final in zip(temporaries, finals, strict=True):
             _publish(tmp, final)
             published.append(final)
-    except BaseException:
+    except BaseException as err:
         for tmp in temporaries:
             tmp.unlink(missing_ok=True)
         # Interrupted between two renames: take back the ones already made, so the set
         # stays all-or-nothing (their previous versions were replaced already).
         for final in published:
             final.unlink(missing_ok=True)
+        # A temporary's name means nothing to the user: name the file it stood for.
+        names = {str(tmp): final for tmp, final in zip(temporaries, finals, strict=False)}
+        if isinstance(err, OSError) and str(err.filename) in names:
+            raise OSError(err.errno, err.strerror or str(err), str(names[str(err.filename)])) from err
         raise
 
 

@@ -73,6 +73,42 @@ def files_of(name: str) -> dict[str, str]:
             "csv": f"{name}.csv", "sidecar": f"{name}.json"}
 
 
+def foreign_files(folder: Path, name: str) -> list[str]:
+    """The files of the run ``name`` in ``folder`` that refflow gui did not write, which it must
+    never replace (the user's own ``clip.json`` or ``clip_mask.png`` beside ``clip.mp4``): none
+    where the run's project file is a refflow project (the page wrote the run's files), else
+    every one of them that exists."""
+    files = files_of(name)
+    project = folder / files["project"]
+    if project.is_file():
+        try:
+            data = load_json(project, f"project {str(project)!r}")
+        except InputError:
+            data = None
+        if isinstance(data, dict) and data.get("format") == FORMAT:
+            return []
+    return [file for file in files.values() if (folder / file).exists() or (folder / file).is_symlink()]
+
+
+def free_name(folder: Path, name: str) -> str:
+    """``name``, or ``name_2``, ``name_3``, ... the first whose files refflow gui may write in
+    ``folder`` (see :func:`foreign_files`)."""
+    for candidate in [name] + [f"{name[:95]}_{k}" for k in range(2, 1000)]:
+        if not foreign_files(folder, candidate):
+            return candidate
+    return name  # the save names the files in the way
+
+
+def check_files_free(folder: Path, name: str) -> None:
+    """InputError where the run ``name`` would replace files in ``folder`` that refflow gui did
+    not write."""
+    foreign = foreign_files(folder, name)
+    if foreign:
+        raise InputError(f"{', '.join(foreign)} in {folder} {'was' if len(foreign) == 1 else 'were'} not written by "
+                         f"refflow gui, which never replaces such a file: choose another run name (e.g. "
+                         f"{free_name(folder, name)}) or another --out-dir")
+
+
 def _text(value: Any) -> str:
     """A number as the command line spells it (integral floats without '.0', others exact)."""
     if isinstance(value, bool):

@@ -244,6 +244,7 @@ class App:
         kinds, described = registry.kinds(), registry.describe()
         name = re.sub(r"[^A-Za-z0-9._-]", "_", self.video.stem)[:60].strip("._-")
         name = name if projects.NAME_PATTERN.fullmatch(name) else "run"
+        name = projects.free_name(self.folder.root, name)  # never the user's own clip.json, clip_mask.png
         saved = None
         project_file = self.folder.root / projects.files_of(name)["project"]
         if project_file.is_file():
@@ -269,6 +270,10 @@ class App:
     def _project(self, body: dict[str, Any]) -> tuple[str, dict[str, Any], dict[str, Path]]:
         """The run's name, its project (checked) and where its files go."""
         name = projects.check_name(body.get("name"))
+        # Every file the save, POI figure or run puts in place (the project and masks a run
+        # stages and renames into place only when it succeeds, its CSV, sidecar and figure) is
+        # checked here, before anything is written or staged: never one refflow gui did not write.
+        projects.check_files_free(self.folder.root, name)
         project = projects.from_page(body.get("project"), video=self.video, name=name, fps=self.fps,
                                      calibration=self.calibration)
         targets = {role: self.folder.path(file) for role, file in projects.files_of(name).items()}

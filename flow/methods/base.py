@@ -22,28 +22,37 @@ from typing import Any
 
 import numpy as np
 
+from flow.params import Param, check_params
+
 
 class Method:
     """What every registered method shares: its name, summary, kind and parameters.
 
     Subclasses set ``summary`` (one line for ``refflow methods``); the registry
     sets ``name``. Parameters are keyword-only constructor arguments with the
-    published defaults; :meth:`params` reports them.
+    published defaults, each declared in ``parameters`` with its type, range and meaning
+    (``refflow methods --params NAME`` lists them) and checked here, before any frame;
+    :meth:`params` reports them.
     """
 
     kind = ""
     name: str = ""
     summary: str = ""
+    parameters: tuple[Param, ...] = ()
     # False for methods built on OpenCV functions that take 8-bit images only: they see
     # 10-16-bit data rounded to 8 bits (``flow.io.as_uint8``).
     full_depth = True
 
     def __init__(self, **params: Any) -> None:
+        check_params(type(self).parameters, params)
         self._params = dict(params)
 
     def params(self) -> dict[str, Any]:
         """Parameters of this instance, for the JSON sidecar."""
         return dict(self._params)
+
+
+CROP = Param("crop", "bool", True, "solve only around the pixels read (their bounding box plus a margin)")
 
 
 # A dense method solves the flow on the pixels the driver reads (POIs, background points) plus
@@ -88,6 +97,7 @@ class DenseMethod(Method):
     """
 
     kind = "dense"
+    parameters: tuple[Param, ...] = (CROP,)
     last_sigmas_px: dict[int, tuple[float, float]] | None = None
 
     def __init__(self, *, crop: bool = True, **params: Any) -> None:

@@ -21,7 +21,8 @@ import numpy as np
 
 from flow.deepmatching import MatchParams, deep_matching, densify, search_radius
 from flow.member import MemberEdges, MemberFit
-from flow.methods.base import CROP_MARGIN_PX, DenseMethod, check_pair, register
+from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
+from flow.params import Param, declared, with_defaults
 from flow.variational import VariationalParams, Workspace, refine
 
 _MATCH_FIELDS = {f.name for f in dataclasses.fields(MatchParams)}
@@ -204,6 +205,12 @@ class DeepFlow(DenseMethod):
     summary = ("DeepMatching + DeepFlow (clean-room, numba), POIs refined from the "
                "structure's edges (default)")
     member_default = True
+    parameters = (
+        Param("preset", "choice", "default", "settings the other parameters start from", choices=tuple(PRESETS)),
+        Param("member", "bool", True, "refine the POIs from the member's edges", optional=True,
+              none_means="the method's default"),
+        Param("warm", "bool", True, "track the member frame to frame within a chain"),
+        CROP, *declared(MatchParams), *declared(VariationalParams))
 
     def __init__(self, *, preset: str = "default", member: bool | None = None, crop: bool = True,
                  warm: bool = True, **params: Any) -> None:
@@ -350,6 +357,7 @@ class DeepFlowDense(DeepFlow):
 
     summary = "DeepMatching + DeepFlow dense field at the POIs, no edge refinement (the paper's method)"
     member_default = False
+    parameters = with_defaults(DeepFlow.parameters, member=False)
 
 
 @register("deepmatching")
@@ -366,6 +374,8 @@ class DeepMatchingDense(DenseMethod):
     """
 
     summary = "DeepMatching quasi-dense matches interpolated to a dense field"
+    parameters = (Param("interpolation", "choice", "linear", "between atomic-patch centres",
+                        choices=("linear", "nearest")), CROP, *declared(MatchParams))
 
     def __init__(self, *, interpolation: str = "linear", crop: bool = True, **params: Any) -> None:
         if interpolation not in ("linear", "nearest"):

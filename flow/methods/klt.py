@@ -23,6 +23,7 @@ import numpy as np
 
 from flow.io import as_uint8
 from flow.methods.base import SparseMethod, register
+from flow.params import Param
 
 _KLT_DEFAULTS = dict(detector="harris", max_corners=200, quality_level=0.01, min_distance=5,
                      block_size=5, window=21, levels=3, use_mask=False)
@@ -38,6 +39,17 @@ class _KLTBase(SparseMethod):
     detection and pyramidal Lucas-Kanade (OpenCV's, on 8-bit images)."""
 
     full_depth = False
+    # OpenCV asserts a window of 3 px or more, a quality in (0, 1), a block of 1 px or more.
+    parameters = (
+        Param("detector", "choice", _KLT_DEFAULTS["detector"], "corner detector", choices=("harris", "shi-tomasi")),
+        Param("max_corners", "int", _KLT_DEFAULTS["max_corners"], "most corners kept", 1, 100000),
+        Param("quality_level", "float", _KLT_DEFAULTS["quality_level"],
+              "weakest corner kept, as a share of the strongest", 0, 1, low_open=True, high_open=True),
+        Param("min_distance", "float", _KLT_DEFAULTS["min_distance"], "least distance between corners, px", 0, 1000),
+        Param("block_size", "int", _KLT_DEFAULTS["block_size"], "corner detection block side, px", 1, 63),
+        Param("window", "int", _KLT_DEFAULTS["window"], "Lucas-Kanade window side, px", 3, 101),
+        Param("levels", "int", _KLT_DEFAULTS["levels"], "Lucas-Kanade pyramid levels", 0, 10),
+        Param("use_mask", "bool", _KLT_DEFAULTS["use_mask"], "corners only on the POI mask (default: the whole ROI)"))
 
     def __init__(self, **params: Any) -> None:
         unknown = set(params) - set(_KLT_DEFAULTS)

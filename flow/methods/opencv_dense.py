@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 
 from flow.io import as_uint8
-from flow.methods.base import DenseMethod, register, register_unavailable
+from flow.methods.base import CROP, DenseMethod, register, register_unavailable
+from flow.params import Param
 
 
 def _has_optflow() -> bool:
@@ -85,6 +86,13 @@ class DIS(_OpenCVDense):
     """
 
     summary = "OpenCV DIS (Kroeger 2016), preset ultrafast|fast|medium, full-resolution refinement; dense, vs reference frame"
+    parameters = (
+        Param("preset", "choice", "medium", "OpenCV preset (also --preset)", choices=tuple(_DIS_PRESETS)),
+        Param("finest_scale", "int", 0, "finest pyramid level solved (0: full resolution)", 0, 10,
+              optional=True, none_means="the preset's"),
+        Param("refinement_iterations", "int", 10, "variational refinement iterations", 0, 200,
+              optional=True, none_means="the preset's"),
+        CROP)
 
     def __init__(self, *, preset: str = "medium", finest_scale: int | None = 0,
                  refinement_iterations: int | None = 10, crop: bool = True) -> None:
@@ -107,6 +115,16 @@ class Farneback(DenseMethod):
     """Farneback polynomial-expansion flow (keyword parameters as in OpenCV)."""
 
     summary = "OpenCV Farneback polynomial expansion (2003); dense, vs reference frame"
+    # Beyond these OpenCV asserts (pyr_scale >= 1) or allocates and runs without end (a window or
+    # polynomial neighbourhood of millions of pixels).
+    parameters = (
+        Param("pyr_scale", "float", 0.5, "scale between pyramid levels", 0.1, 0.9),
+        Param("levels", "int", 4, "pyramid levels above the image (OpenCV stops at small sizes)", 0, 20),
+        Param("winsize", "int", 15, "averaging window side, px", 3, 101),
+        Param("iterations", "int", 5, "iterations per pyramid level", 1, 50),
+        Param("poly_n", "int", 7, "pixel neighbourhood of the polynomial expansion (5 or 7 typical)", 3, 11),
+        Param("poly_sigma", "float", 1.5, "Gaussian sigma of the expansion (1.1 for poly_n 5, 1.5 for 7)", 0.5, 5),
+        CROP)
     full_depth = False
 
     def __init__(self, *, pyr_scale: float = 0.5, levels: int = 4, winsize: int = 15,
@@ -141,6 +159,12 @@ if _has_optflow() and hasattr(cv2.optflow, "DualTVL1OpticalFlow_create"):
         """
 
         summary = "OpenCV contrib dual TV-L1 (Zach 2007); dense, vs reference frame; slow"
+        parameters = (
+            Param("lambda_", "float", 0.05, "data-term weight", 0, 10, low_open=True),
+            Param("warps", "int", 10, "warpings per scale", 1, 50),
+            Param("scales", "int", 6, "pyramid scales", 1, 20),
+            Param("epsilon", "float", 0.001, "stopping tolerance", 0, 1, low_open=True),
+            CROP)
 
         def __init__(self, *, lambda_: float = 0.05, warps: int = 10, scales: int = 6,
                      epsilon: float = 0.001, crop: bool = True) -> None:

@@ -447,3 +447,75 @@ def test_command_groups_keep_each_option_with_its_value(tmp_path) -> None:
     assert groups[:3] == ["refflow track", str(tmp_path / "clip.mp4"), "--roi=-4,0,50,50"]
     assert "--known-length 3800" in groups and "--param finest_scale=0" in groups
     assert all(not g.startswith("--") or " " in g or "=" in g for g in groups)
+
+
+def test_the_page_never_replaces_a_file_it_did_not_write(tmp_path) -> None:
+    """`refflow gui clip.avi --out-dir <the video's folder>` beside the user's own clip.json and
+    clip_mask.png (issue 32, case 9): the page offers another run name, and saving under the
+    taken one is refused in one line; the user's files stay as they were. Its own files (a
+    run whose project it wrote) it replaces as before."""
+    from flow.gui.server import App
+
+    video = write_clip(tmp_path / "clip.avi")
+    mine = {tmp_path / "clip.json": b'{"my": "notes"}', tmp_path / "clip_mask.png": b"not refflow's"}
+    for path, content in mine.items():
+        path.write_bytes(content)
+    app = App(video, tmp_path)
+    try:
+        assert app.info()["name"] == "clip_2"
+        state = page(roi=None, regions=[{"label": "band", "polygon": [[10, 20], [80, 20], [80, 44], [10, 44]]}],
+                     background=[], scale={"mm_per_px": "0.25"}, options={"max_frames": "5"})
+        with pytest.raises(InputError) as refused:
+            app.save({"name": "clip", "project": state})
+        message = str(refused.value)
+        assert "clip_mask.png, clip.json in" in message and "were not written by refflow gui" in message
+        assert "choose another run name (e.g. clip_2)" in message and "\n" not in message
+        assert {path: path.read_bytes() for path in mine} == mine
+        assert not (tmp_path / "clip_project.json").exists()
+        saved = app.save({"name": "clip_2", "project": state})
+        assert (tmp_path / saved["files"]["mask"]).is_file()
+        app.save({"name": "clip_2", "project": state})  # its own files: replaced
+        assert app.info()["name"] == "clip_2"  # the page's own run, offered again
+    finally:
+        app.close()
+    assert {path: path.read_bytes() for path in mine} == mine
+
+
+def test_a_run_or_poi_figure_never_replaces_a_file_the_page_did_not_write(served, tmp_path) -> None:
+    """Issue 32, cases 9 and 10 together: a run stages its project and masks and renames them
+    into place when it succeeds; the files it would put in place (and its CSV, sidecar and POI
+    figure) are checked before anything is staged, so a run or POI figure under a name whose
+    files are the user's own is refused in one line, as an attempt of its own, and leaves
+    nothing (no staging folder either). Under a free name it runs, and its next run replaces
+    the page's own files as before."""
+    out = tmp_path / "out"
+    out.mkdir()
+    video = write_clip(out / "clip.avi")
+    mine = {out / "clip.json": b'{"my": "notes"}', out / "clip_mask.png": b"not refflow's"}
+    for path, content in mine.items():
+        path.write_bytes(content)
+    before = sorted(p.name for p in out.iterdir())
+    httpd = served(video)
+    assert httpd.app.folder.root == out
+    assert json.loads(call(httpd, "GET", "/api/info")[2])["name"] == "clip_2"
+    state = page(roi=None, regions=[{"label": "band", "polygon": [[10, 20], [80, 20], [80, 44], [10, 44]]}],
+                 background=[], scale={"mm_per_px": "0.25"}, options={"max_frames": "5"})
+    attempt = 0
+    for route in ("/api/run", "/api/pois", "/api/project"):
+        reply = call(httpd, "POST", route, {"name": "clip", "project": state})
+        message = error_of(reply)
+        assert reply[0] == 400 and "were not written by refflow gui" in message, (route, message)
+        assert "choose another run name (e.g. clip_2)" in message
+        refused = json.loads(reply[2])
+        assert refused["state"] == "failed" and refused["attempt"] > attempt
+        attempt = refused["attempt"]
+        assert sorted(p.name for p in out.iterdir()) == before  # nothing staged, nothing written
+        assert {path: path.read_bytes() for path in mine} == mine
+    assert json.loads(call(httpd, "GET", "/api/run")[2])["state"] == "idle"
+    for _ in range(2):  # the second run replaces the first one's files: the page wrote them
+        assert call(httpd, "POST", "/api/run", {"name": "clip_2", "project": state})[0] == 200
+        status = wait_run(httpd)
+        assert status["state"] == "done", status
+        assert (out / "clip_2_mask.png").is_file() and (out / "clip_2_project.json").is_file()
+        assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # the staging folder is gone
+    assert {path: path.read_bytes() for path in mine} == mine

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import math
+from datetime import timedelta
 
 import cv2
 import numpy as np
@@ -73,3 +74,39 @@ def test_any_option_value_measures_or_refuses_in_one_line(frames, tmp_path, caps
             assert math.isfinite(float(row["dx_px"])) and math.isfinite(float(row["dy_px"])), (option, row)
             if row["dx_mm"] != "nan":
                 assert math.isfinite(float(row["dx_mm"])), (option, row)
+
+
+def _outside_text(param) -> st.SearchStrategy:
+    """A value of ``param`` outside its declared range, as typed after ``--param KEY=``."""
+    options = [st.sampled_from(["nan", "inf", "-inf", "1e400", "abc", ""])]
+    if param.low is not None:
+        options.append(st.floats(max_value=param.low, exclude_max=not param.low_open, allow_nan=False,
+                                 allow_infinity=False).map(repr))
+    if param.high is not None:
+        options.append(st.floats(min_value=param.high, exclude_min=not param.high_open, allow_nan=False,
+                                 allow_infinity=False).map(repr))
+        options.append(st.integers(min_value=int(param.high) + 1).map(str))
+    return st.one_of(*options)
+
+
+@settings(max_examples=60, deadline=timedelta(seconds=3), derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_a_parameter_outside_its_range_is_refused_before_any_frame(frames, tmp_path, capsys, data) -> None:
+    """Issue 32, case 6: `--param winsize=100000000` ran for 17 minutes. Whatever method and
+    parameter, a value outside the declared range (`refflow methods --params NAME`) is one
+    line at once, naming the parameter and pointing at the list; each example is bounded in
+    time (the deadline), and no file is written."""
+    from flow import registry
+
+    numeric = [(name, p) for name in registry.available() for p in registry.parameters(name)
+               if p.kind in ("int", "float")]
+    name, param = data.draw(st.sampled_from(numeric), label="parameter")
+    value = data.draw(_outside_text(param), label="value")
+    out = tmp_path / "p.csv"
+    rc = main(["track", str(frames), "--fps", "30", "--rect", "20,10,50,40", "--method", name, "--no-progress",
+               "--out", str(out), f"--param={param.name}={value}"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1, (name, param.name, value, err)
+    assert f"parameter {param.name}" in err and f"(see `refflow methods --params {name}`)" in err, err
+    assert not out.exists() and not out.with_suffix(".json").exists()

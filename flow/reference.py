@@ -1,0 +1,116 @@
+"""Whether the reference frame can be measured against: it shows texture or an outline
+around the POIs, and is not saturated there.
+
+Every dense method reads each frame's motion against the one reference frame. A black or
+uniform reference (a lens cap, a fade-in) or a washed-out one (a flash) gives every method
+nothing to match: they answer anyway, with numbers that look valid and are not (issue 32:
+6.6 px RMS off a 10.8 px motion, every frame marked valid). So the reference's content
+around the mask is checked before any frame is measured, and a refusal names the first
+frame from it that would do.
+
+What counts is the POI mask and its near surroundings, not the mask alone: a plain painted
+member has little texture inside its outline, but its edges against the background carry
+its motion (``tests/unit/_lowtex_clip.py``), and those lie just outside the mask.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+
+from flow.errors import InputError
+from flow.io import FrameSource
+
+# The surroundings: the mask grown by this many pixels, or by this share of its larger side.
+NEAR_PX = 16
+NEAR_SHARE = 0.1
+# Texture: the grey levels between the 1st and 99th percentile of the surroundings, lightly
+# smoothed, must exceed MIN_SPREAD and NOISE_MULTIPLE times the noise (the robust spread of what
+# the smoothing took away). Sensor noise on a uniform frame spreads over about 1.5 times its own
+# level; a painted member against a wall over a hundred grey levels, the faint 12-bit texture of
+# the tests over 4 (noise 0.2); a black frame, flattened by H.264, over none.
+MIN_SPREAD = 1.0
+NOISE_MULTIPLE = 4.0
+SMOOTH_SIGMA_PX = 1.0
+# A frame is saturated where at least this share of the surroundings sits at its brightest
+# grey (clipped pixels share one value: a textured bright scene has few pixels there).
+SATURATED_SHARE = 0.5
+SATURATED_MIN_GREY = 200.0
+# How far ahead a usable frame is looked for, to name it in the refusal.
+SEARCH_FRAMES = 1000
+
+
+def surroundings(mask: np.ndarray) -> np.ndarray:
+    """The mask grown by :data:`NEAR_PX` (or :data:`NEAR_SHARE` of its larger side), bool."""
+    rows, columns = np.nonzero(mask)
+    if rows.size == 0:
+        return mask.astype(bool)
+    side = max(rows.max() - rows.min(), columns.max() - columns.min()) + 1
+    grow = int(max(NEAR_PX, round(NEAR_SHARE * side)))
+    # Grow within the mask's bounding box widened by the growth: a 4K frame costs its member.
+    top, left = max(rows.min() - grow, 0), max(columns.min() - grow, 0)
+    bottom, right = min(rows.max() + grow + 1, mask.shape[0]), min(columns.max() + grow + 1, mask.shape[1])
+    window = np.ascontiguousarray(mask[top:bottom, left:right], np.uint8)
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * grow + 1, 2 * grow + 1))
+    near = np.zeros(mask.shape, bool)
+    near[top:bottom, left:right] = cv2.dilate(window, kernel) > 0
+    return near
+
+
+def problem(grey: np.ndarray, near: np.ndarray) -> str | None:
+    """What makes ``grey`` no reference over the pixels ``near`` (see :func:`surroundings`), or None."""
+    values = grey[near].astype(np.float32)
+    if values.size == 0:
+        return None
+    rows, columns = np.nonzero(near)
+    box = (slice(rows.min(), rows.max() + 1), slice(columns.min(), columns.max() + 1))
+    window, inside = grey[box].astype(np.float32), near[box]
+    smooth = cv2.GaussianBlur(window, (0, 0), SMOOTH_SIGMA_PX)
+    low, high = np.percentile(smooth[inside], [1, 99])
+    noise = 1.4826 * float(np.median(np.abs(window - smooth)[inside]))
+    needed = max(MIN_SPREAD, NOISE_MULTIPLE * noise)
+    if high - low < needed:
+        return (f"has no texture around the mask (uniform grey {float(np.median(values)):.0f}: its grey levels "
+                f"spread over {high - low:.2g}, {needed:.2g} needed)")
+    top = float(values.max())
+    at_top = float(np.mean(values >= top - 0.5))
+    if top >= SATURATED_MIN_GREY and at_top >= SATURATED_SHARE:
+        return f"is saturated around the mask ({100 * at_top:.0f} % of its pixels at the top grey {top:.0f})"
+    return None
+
+
+def check(source: FrameSource, reference_frame: int, average: int, mask: np.ndarray,
+          undistort: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+    """Refuse a reference (frame ``reference_frame``, or each of the ``average`` frames from
+    it) that :func:`problem` finds wanting, naming the first frame from which ``average``
+    frames in a row would do. Frames beyond the video are left to the driver to refuse."""
+    near = surroundings(mask)
+    if reference_frame < 0 or average < 1 or not near.any():
+        return  # the driver and the mask checks say what is wrong with these
+
+    def frames(start: int, stop: int):
+        for index, _, grey in source.frames(start, stop):
+            yield index, problem(undistort(grey) if undistort is not None else grey, near)
+
+    bad = next(((index, found) for index, found in frames(reference_frame, reference_frame + average) if found),
+                None)
+    if bad is None:
+        return
+    index, found = bad
+    what = f"the reference frame {index}" if average == 1 else \
+        f"frame {index} of the reference average ({reference_frame}..{reference_frame + average - 1})"
+    run, usable = 0, None
+    for later, later_problem in frames(index + 1, index + 1 + SEARCH_FRAMES):
+        run = 0 if later_problem else run + 1
+        if run == average:
+            usable = later - average + 1
+            break
+    if usable is None:
+        raise InputError(f"{what} {found}, and so do the {SEARCH_FRAMES} frames after it (or the video ends): "
+                         "check that the mask lies on the structure and that the video shows it, or pass "
+                         "--reference-frame N of a frame that shows it")
+    first = "the first usable frame after it" if average == 1 else \
+        f"the first of {average} usable frames in a row after it"
+    raise InputError(f"{what} {found}: pass --reference-frame {usable} ({first})")
