@@ -13,7 +13,7 @@ import numpy as np
 from flow.filtering import FilterResult
 
 # Counters a chaining method keeps (see flow.driver.track_dense), reported with the timings.
-CHAIN_COUNTS = ("full_frames", "warm_frames")
+CHAIN_COUNTS = ("full_frames", "warm_frames", "outline_readings", "affine_readings", "dense_readings")
 
 
 class ColumnView:

@@ -16,13 +16,14 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-import cv2
 import numpy as np
 
 from flow.deepmatching import MatchParams, deep_matching, densify, search_radius
 from flow.member import MemberEdges, MemberFit
 from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
 from flow.params import Param, declared, with_defaults
+from flow.photometric import sample
+from flow.regionfit import RegionFit, RegionMotion
 from flow.variational import VariationalParams, Workspace, refine
 
 _MATCH_FIELDS = {f.name for f in dataclasses.fields(MatchParams)}
@@ -84,6 +85,11 @@ def _reach_of(match: MatchParams, whole_shape: tuple[int, ...]) -> MatchParams:
 # flow wins, the chain's next frames are measured in full too).
 CHAIN_LENGTH = 16
 WARM_RATIO = 1.3
+# An outline tracked from its previous frame that moved more than this (px, the POIs' mean)
+# since then is measured in full: the outline fit finds each edge within a few pixels of its
+# start, and a member swinging tens of pixels (motion-blurred, jittering) lost its edges in
+# tracked frames (2 px RMS on a +-35 px swing where full measurements read 0.2 px).
+MAX_WARM_STEP_PX = 1.5
 
 
 # The edge refinement is kept when the POIs' mean photometric mismatch under it is at most
@@ -94,40 +100,86 @@ MATCH_SLACK = 0.5
 
 def _mismatch(reference: np.ndarray, current: np.ndarray, cols: np.ndarray, rows: np.ndarray,
               u: np.ndarray, v: np.ndarray) -> float:
-    """Mean |current(x + d) - reference(x)| over the points (bilinear, grey levels)."""
-    map_x = (cols + u).astype(np.float32).reshape(1, -1)
-    map_y = (rows + v).astype(np.float32).reshape(1, -1)
-    warped = cv2.remap(current.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)[0]
-    return float(np.mean(np.abs(warped - reference[rows, cols].astype(np.float32))))
+    """Mean |current(x + d) - reference(x)| over the points (bilinear, grey levels; points
+    whose position leaves the frame are clamped to its edge). Any number of points (OpenCV's
+    remap refuses maps wider than 32767)."""
+    height, width = current.shape
+    x = np.clip(cols + u, 0, width - 1)
+    y = np.clip(rows + v, 0, height - 1)
+    warped = sample(current, x, y)
+    return float(np.nanmean(np.abs(warped - reference[rows, cols].astype(np.float32))))
+
+
+# Which reading a region takes in a full measurement (see :func:`_choose`). The texture fit
+# assumes least (no straight edges, no background standing still): where it fixes the motion
+# to TEXTURE_ENOUGH_PX (standard uncertainty) on both axes, it is taken. A fainter texture
+# is not trusted over a member's outline: a codec rebuilds a painted member's faint texture
+# differently in every frame and lays its fixed block pattern over it, which biases the whole
+# region alike (0.2-0.4 px on the bench's thin bar, where the fit's own uncertainty said
+# 0.01-0.04 px and the outline read 0.05 px RMS). Measured on the bench's textured clips
+# (panel, whole view, bolted plate, girder): 0.003-0.006 px; a wide painted bar at CRF 12
+# (the bench's lowtex-wide): down to 0.01-0.02 in some frames, where the outline is better.
+TEXTURE_ENOUGH_PX = 0.012
+# The readings a region can take, in the sidecar's counts (``<model>_readings``).
+MODELS = ("outline", "affine", "dense")
+
+
+def _choose(affine: tuple | None, outline: tuple | None) -> tuple[tuple | None, str, str]:
+    """The reading a region takes from its affine texture fit and its outline fit (each
+    ``(u, v, (sigma_x, sigma_y))`` or None), the model's name and why."""
+    if affine is not None and max(affine[2]) <= TEXTURE_ENOUGH_PX:
+        return affine, "affine", "the texture fixes the motion on both axes"
+    if outline is not None:
+        why = "no texture to fit" if affine is None else "the texture is too faint to fix the motion"
+        return outline, "outline", why
+    if affine is not None:
+        return affine, "affine", "no outline fit; the texture is faint"
+    return None, "dense", "neither the texture nor an outline could be fitted"
 
 
 @dataclasses.dataclass
 class _Region:
-    """One region of the POI mask: its member's edges and where its chain stands."""
+    """One region of the POI mask: its member's edges, its texture, and where its chain stands."""
 
     label: int  # the region's value in the mask (1 for a bool mask)
-    member: MemberEdges
+    member: MemberEdges | None  # None: the outline is not used
+    texture: RegionFit | None  # the region as one correlation subset (None: not used or no texture)
     rows: np.ndarray  # the region's POIs
     cols: np.ndarray
     prior_rows: np.ndarray  # where the dense flow is read for each outline: its member-side pixel
     prior_cols: np.ndarray
     ref_level: float  # the reference's median grey at the POIs
-    theta: np.ndarray | None = None  # the motion of the chain's last frame (None: measure in full)
+    model: str | None = None  # what the chain's key chose ("outline", "affine"; None: measure in full)
+    theta: np.ndarray | None = None  # the outline's motion of the chain's last frame
+    theta_before: np.ndarray | None = None  # and of the frame before it
     key_mismatch: float = float("nan")  # the POIs' mismatch at the chain's last full measurement
-    key_along: np.ndarray | None = None  # the along-member motion the chain's key took from its dense flow
+    key_along: np.ndarray | None = None  # the along-member motion the chain's key took from elsewhere
+    affine: np.ndarray | None = None  # the texture's affine motion of the chain's last frame
+    affine_before: np.ndarray | None = None  # and of the frame before it
+    key_residual: float = float("nan")  # the texture fit's residual at the chain's key
 
     @classmethod
-    def of(cls, reference: np.ndarray, mask: np.ndarray, label: int) -> _Region:
-        member = MemberEdges.from_reference(reference, mask)
+    def of(cls, reference: np.ndarray, mask: np.ndarray, label: int, *, member: bool,
+           texture: bool) -> _Region:
         rows, cols = np.nonzero(mask)
         height, width = reference.shape
-        inward_x = np.where(member.vertical, member.px, member.px - 0.5 * member.side)
-        inward_y = np.where(member.vertical, member.py - 0.5 * member.side, member.py)
-        return cls(label, member, rows, cols,
-                   np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1),
-                   np.clip(np.rint(inward_x).astype(np.intp), 0, width - 1),
+        edges = MemberEdges.from_reference(reference, mask) if member else None
+        fit = RegionFit(reference, rows, cols) if texture and rows.size >= 8 else None
+        if fit is not None and not fit.textured:
+            fit = None
+        prior_rows = prior_cols = np.zeros(0, np.intp)
+        if edges is not None:
+            inward_x = np.where(edges.vertical, edges.px, edges.px - 0.5 * edges.side)
+            inward_y = np.where(edges.vertical, edges.py - 0.5 * edges.side, edges.py)
+            prior_rows = np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1)
+            prior_cols = np.clip(np.rint(inward_x).astype(np.intp), 0, width - 1)
+        return cls(label, edges, fit, rows, cols, prior_rows, prior_cols,
                    float(np.median(reference[mask])) or 1.0)
+
+    def restart(self) -> None:
+        self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
+        self.theta_before = None
+        self.affine, self.affine_before, self.key_residual = None, None, float("nan")
 
     def motion(self, reference: np.ndarray, current: np.ndarray, fit: MemberFit,
                along: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
@@ -137,10 +189,10 @@ class _Region:
         The outline measures the motion across the member along its long edges; along the
         member it has only the ends of the grown mask, which are no edges where the member
         runs on beyond the mask, and the low-order field extrapolates them over the POIs.
-        Given the POIs' along-member motion from elsewhere (``along``: the dense flow's in
-        a full measurement, the chain key's in a tracked frame), the POIs also try the
-        field's across-member motion with that along-member motion, and take whichever of
-        the two matches them better.
+        Given the POIs' along-member motion from elsewhere (``along``: the dense flow's in a
+        full measurement, the chain key's in a tracked frame), the POIs
+        also try the field's across-member motion with that along-member motion, and take
+        whichever of the two matches them better.
         """
         u, v = self.member.displacement(fit)
         best = (u, v, _mismatch(reference, current, self.cols, self.rows, u, v), None)
@@ -164,20 +216,39 @@ class _Region:
         gain = float(np.median(current[self.rows, self.cols])) / self.ref_level
         return gain if np.isfinite(gain) and gain > 0 else None
 
+    def texture_reading(self, found: RegionMotion) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+        u, v = self.texture.field(found.params, self.rows, self.cols)
+        return u, v, found.sigma_px
+
+
+def _in_band(value: float, key: float) -> bool:
+    """A tracked frame's mismatch (or residual) within its chain key's band."""
+    return key / WARM_RATIO - MATCH_SLACK <= value <= key * WARM_RATIO + MATCH_SLACK
+
 
 @register("deepflow")
 class DeepFlow(DenseMethod):
-    """DeepFlow: DeepMatching matches blended into a variational energy, then the structure's
-    motion refined from its edges.
+    """DeepFlow: DeepMatching matches blended into a variational energy, then each region's
+    motion refined from what its images support: its texture, or its outline.
 
-    The dense flow (DeepMatching + DeepFlow) covers the POIs' window (see ``crop``). Where
-    the user's POI mask marks a member with edges, :mod:`flow.member` measures the outline's
-    sub-pixel motion against the background and fits a smooth motion field to it; the POIs
-    take that field's values (the dense flow is the starting guess, and keeps the directions
-    the outline does not constrain). A member without usable edges keeps the dense flow.
+    The dense flow (DeepMatching + DeepFlow) covers the POIs' window (see ``crop``) and starts
+    two refinements of every region of the mask, each with its own assumptions:
+
+    * *texture* (:mod:`flow.regionfit`): the region as one image-correlation subset, an
+      affine warp (translation, rotation, stretch, shear) with gain and offset fitted to all
+      of its pixels; it needs texture inside the mask and nothing else;
+    * *outline* (:mod:`flow.member`): the member's edges against a background that stands
+      still; it needs a straight-edged member in front of a static background and nothing
+      inside the mask.
+
+    A region takes the outline only where the texture does not refute it (:func:`_choose`):
+    where both were fitted, their means must agree within their uncertainties, and the more
+    precise one is taken; where the texture is too weak to fit, the outline (if its fit
+    matches the POIs no worse than the dense flow); where neither fits, the dense flow.
     Through a video the driver hands the frames over in chains (see ``warm``): a chain's
-    first frame is measured so, the rest track the member from the previous frame's motion
-    while their photometric mismatch stays in the chain's band.
+    first frame is measured so, and the rest track each region with the model its key chose,
+    from the previous frames' motion, while their photometric mismatch stays in the chain's
+    band. The sidecar counts the readings of each model (``<model>_readings``).
 
     Parameters (keyword-only; defaults follow the papers, see
     :class:`flow.deepmatching.MatchParams` and
@@ -186,11 +257,12 @@ class DeepFlow(DenseMethod):
     preset : {"default", "fast", "large-displacement"}
     member : bool
         Refine the POIs from the member's edges (default True).
+    texture : bool
+        Refine each region as one affine correlation subset (default True).
     warm : bool
-        Track the member from frame to frame within a chain of :data:`CHAIN_LENGTH` frames,
+        Track each region from frame to frame within a chain of :data:`CHAIN_LENGTH` frames,
         verified by the photometric mismatch (default True; False: every frame measured in
-        full). Without a member, or with background points to read, every frame is measured
-        in full.
+        full). With background points to read, every frame is measured in full.
     crop : bool
         Solve the dense flow only around the pixels that are read (the POIs' and background
         points' bounding box plus :data:`flow.methods.base.CROP_MARGIN_PX` or the whole frame's
@@ -202,37 +274,48 @@ class DeepFlow(DenseMethod):
         the matching itself) off.
     """
 
-    summary = ("DeepMatching + DeepFlow (clean-room, numba), POIs refined from the "
-               "structure's edges (default)")
+    summary = ("DeepMatching + DeepFlow (clean-room, numba), each region refined from its texture "
+               "(affine correlation) or its outline, whichever the images support (default)")
     member_default = True
+    texture_default = True
     parameters = (
         Param("preset", "choice", "default", "settings the other parameters start from", choices=tuple(PRESETS)),
         Param("member", "bool", True, "refine the POIs from the member's edges", optional=True,
               none_means="the method's default"),
-        Param("warm", "bool", True, "track the member frame to frame within a chain"),
+        Param("texture", "bool", True, "refine each region as one affine correlation subset",
+              optional=True, none_means="the method's default"),
+        Param("warm", "bool", True, "track each region frame to frame within a chain"),
         CROP, *declared(MatchParams), *declared(VariationalParams))
 
-    def __init__(self, *, preset: str = "default", member: bool | None = None, crop: bool = True,
-                 warm: bool = True, **params: Any) -> None:
+    def __init__(self, *, preset: str = "default", member: bool | None = None,
+                 texture: bool | None = None, crop: bool = True, warm: bool = True,
+                 **params: Any) -> None:
         merged = _resolve(preset, params)
         self._match, self._var = _split(merged)
-        for label, value, optional in (("member", member, True), ("warm", warm, False)):
+        for label, value, optional in (("member", member, True), ("texture", texture, True),
+                                       ("warm", warm, False)):
             if not (isinstance(value, bool) or (optional and value is None)):
                 raise ValueError(f"{label} must be true or false, got {value!r}")
         self._member_on = self.member_default if member is None else member
+        self._texture_on = self.texture_default if texture is None else texture
         # Frames the driver hands one instance in order (0: each frame on its own); set by bind.
         self._warm_on = warm
         self.chain_length = 0
         self._chaining = False
         self._warm_flow: np.ndarray | None = None
-        # Frames measured in full and tracked from their predecessor (see CHAIN_LENGTH).
+        # Frames measured in full and tracked from their predecessor (see CHAIN_LENGTH), and
+        # the regions' readings by model.
         self.full_frames = 0
         self.warm_frames = 0
+        self.outline_readings = 0
+        self.affine_readings = 0
+        self.dense_readings = 0
+        self.reasons: dict[str, int] = {}
         # Scratch reused from frame to frame: an instance serves one thread at a time.
         self._workspace = Workspace()
         self._regions: list[_Region] = []  # one per region of the mask (see bind)
         super().__init__(
-            preset=preset, member=self._member_on, crop=crop, warm=warm,
+            preset=preset, member=self._member_on, texture=self._texture_on, crop=crop, warm=warm,
             **dataclasses.asdict(self._match),
             **dataclasses.asdict(self._var)
         )
@@ -242,11 +325,11 @@ class DeepFlow(DenseMethod):
         self._regions = []
         self._chaining = False
         self._warm_flow = None
-        # The driver reads chain_length after bind: without a member to track (or with
+        # The driver reads chain_length after bind: without a region to track (or with
         # background points, whose flow only the dense solve gives) frames stand alone.
         self.chain_length = 0
         mask = np.asarray(mask)
-        if not self._member_on or mask.shape != reference.shape:
+        if not (self._member_on or self._texture_on) or mask.shape != reference.shape:
             return
         # One member per region of a labelled mask (a bool mask: one region, label 1).
         for label in np.unique(mask[mask != 0]):
@@ -254,7 +337,8 @@ class DeepFlow(DenseMethod):
             if region.sum() < 3:
                 self._regions = []
                 return
-            self._regions.append(_Region.of(reference, region, int(label)))
+            self._regions.append(_Region.of(reference, region, int(label), member=self._member_on,
+                                            texture=self._texture_on))
         if self._warm_on and read is None:
             self.chain_length = CHAIN_LENGTH
 
@@ -267,7 +351,7 @@ class DeepFlow(DenseMethod):
         restart after a bind every call of :meth:`calc` stands alone."""
         self._chaining = self.chain_length > 1 and bool(self._regions)
         for region in self._regions:
-            region.theta, region.key_mismatch, region.key_along = None, float("nan"), None
+            region.restart()
 
     def _solve(self, reference: np.ndarray, current: np.ndarray, *,
                whole_shape: tuple[int, ...]) -> np.ndarray:
@@ -289,9 +373,9 @@ class DeepFlow(DenseMethod):
         check_pair(reference, current)
         regions = self._regions if current.shape == self._bound_shape else []
         self.last_sigmas_px = {}
-        # Each region on its own: tracked from its previous frame where it may be, measured
+        # Each region on its own: tracked from its previous frames where it may be, measured
         # in full otherwise; the dense flow is solved when any region needs it.
-        tracked = [self._track(reference, current, r) if self._chaining and r.theta is not None else None
+        tracked = [self._track(reference, current, r) if self._chaining and r.model is not None else None
                    for r in regions]
         if regions and all(t is not None for t in tracked):
             self.warm_frames += 1
@@ -309,43 +393,75 @@ class DeepFlow(DenseMethod):
                 flow[region.rows, region.cols, 1] = v
         return flow
 
+    def _count(self, model: str, reason: str | None = None) -> None:
+        setattr(self, f"{model}_readings", getattr(self, f"{model}_readings") + 1)
+        if reason is not None:
+            self.reasons[reason] = self.reasons.get(reason, 0) + 1
+
     def _full(self, reference: np.ndarray, current: np.ndarray, flow: np.ndarray,
               region: _Region) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
-        """A region's POI motion from its edges, starting from the dense ``flow``; None where
-        the dense flow stays (no fit, or the edges match the POIs worse)."""
-        region.theta = None
-        prior = flow[region.prior_rows, region.prior_cols].astype(np.float64)
-        fit = region.member.fit(current, prior, gain=region.gain(current))
-        if not fit.ok:
-            return None
+        """A region's POI motion from its texture or its edges, starting from the dense
+        ``flow``; None where the dense flow stays (neither fits)."""
+        region.restart()
         dense_u = flow[region.rows, region.cols, 0]
         dense_v = flow[region.rows, region.cols, 1]
-        u, v, edges, along = region.motion(reference, current, fit, region.along(dense_u, dense_v))
-        # The edges must not make the POIs' own match worse than the dense flow's: on a
-        # textured member (or outlines that are not the member's) the dense flow is right.
-        if edges > MATCH_TOLERANCE * _mismatch(reference, current, region.cols, region.rows,
-                                               dense_u, dense_v) + MATCH_SLACK:
-            return None
-        if self._chaining:
-            region.theta, region.key_mismatch, region.key_along = fit.params, edges, along
-        return u, v, region.member.mean_sigma(fit)
+        affine, texture = None, None
+        if region.texture is not None:
+            start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
+            texture = None if start is None else region.texture.fit(current, start)
+            if texture is not None and texture.converged and all(np.isfinite(texture.sigma_px)):
+                affine = region.texture_reading(texture)
+            else:
+                texture = None
+        outline, fit, along = None, None, None
+        if region.member is not None:
+            prior = flow[region.prior_rows, region.prior_cols].astype(np.float64)
+            fit = region.member.fit(current, prior, gain=region.gain(current))
+            if fit.ok:
+                u, v, edges, along = region.motion(reference, current, fit, region.along(dense_u, dense_v))
+                # The edges must not make the POIs' own match worse than the dense flow's.
+                if edges <= MATCH_TOLERANCE * _mismatch(reference, current, region.cols, region.rows,
+                                                        dense_u, dense_v) + MATCH_SLACK:
+                    outline = (u, v, region.member.mean_sigma(fit))
+                    region.key_mismatch = edges
+        chosen, model, reason = _choose(affine, outline)
+        self._count(model, reason)
+        if self._chaining and model == "outline":
+            region.model, region.theta, region.key_along = "outline", fit.params, along
+        elif self._chaining and model == "affine":
+            region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
+        return chosen
 
-    @staticmethod
-    def _track(reference: np.ndarray, current: np.ndarray,
+    def _track(self, reference: np.ndarray, current: np.ndarray,
                region: _Region) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
-        """A region's POI motion from its edges, starting from its previous frame's motion; None
-        where the fit fails or its mismatch leaves the chain's band (the region is then
+        """A region's POI motion with its chain key's model, from its previous frames' motion;
+        None where the fit fails or its mismatch leaves the chain's band (the region is then
         measured in full)."""
+        if region.model == "affine":
+            previous = region.affine
+            start = previous if region.affine_before is None else 2.0 * previous - region.affine_before
+            found = region.texture.fit(current, start)
+            if not (found.converged and all(np.isfinite(found.sigma_px))
+                    and _in_band(found.residual, region.key_residual)):
+                return None
+            region.affine_before, region.affine = previous, found.params
+            self._count("affine")
+            return region.texture_reading(found)
         member = region.member
-        prior = np.column_stack(member.field.uv(region.theta))
+        # The motion goes on as it went (a member swinging tens of px moves a few px a frame).
+        theta = region.theta if region.theta_before is None else 2.0 * region.theta - region.theta_before
+        prior = np.column_stack(member.field.uv(theta))
         fit = member.fit(current, prior, gain=region.gain(current))
         if not fit.ok:
             return None
         u, v, edges, _ = region.motion(reference, current, fit, region.key_along)
-        key = region.key_mismatch
-        if not key / WARM_RATIO - MATCH_SLACK <= edges <= key * WARM_RATIO + MATCH_SLACK:
+        now_u, now_v = member.poi_field.uv(fit.params)
+        before_u, before_v = member.poi_field.uv(region.theta)
+        step = float(np.hypot(np.mean(now_u - before_u), np.mean(now_v - before_v)))
+        if not (_in_band(edges, region.key_mismatch) and step <= MAX_WARM_STEP_PX):
             return None
-        region.theta = fit.params
+        region.theta_before, region.theta = region.theta, fit.params
+        self._count("outline")
         return u, v, member.mean_sigma(fit)
 
 
@@ -357,7 +473,8 @@ class DeepFlowDense(DeepFlow):
 
     summary = "DeepMatching + DeepFlow dense field at the POIs, no edge refinement (the paper's method)"
     member_default = False
-    parameters = with_defaults(DeepFlow.parameters, member=False)
+    texture_default = False
+    parameters = with_defaults(DeepFlow.parameters, member=False, texture=False)
 
 
 @register("deepmatching")
