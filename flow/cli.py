@@ -176,7 +176,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     units = args.units
     if units == "auto":
         units = "mm" if all(m["has_mm"] for _, _, m in measured) else "px"
-    series = {}
+    series, flagged = {}, {}
     for i, path, data in measured:
         if units == "mm" and not data["has_mm"]:
             raise InputError(f"{path} has no mm columns (tracked without a scale): use --units px")
@@ -186,9 +186,12 @@ def cmd_plot(args: argparse.Namespace) -> int:
         if label in series:
             label = f"{label} ({Path(path).stem})"
         series[label] = (data["time_s"], data[f"dx_{units}"], data[f"dy_{units}"])
+        flagged[label] = (data["time_s"], data["flagged"][f"dx_{units}"], data["flagged"][f"dy_{units}"])
         if not np.isfinite(series[label][1]).any():
-            print(f"refflow plot: note: {label} has no valid frame (see its sidecar's notes)", file=sys.stderr)
-    summary = spectrum_figure(series, args.out, units=units, title=args.title or "", min_hz=args.min_hz)
+            grey = ": its flagged readings are drawn grey" if np.isfinite(flagged[label][1]).any() else ""
+            print(f"refflow plot: note: {label} has no valid frame{grey} (see its sidecar's notes)", file=sys.stderr)
+    summary = spectrum_figure(series, args.out, units=units, title=args.title or "", min_hz=args.min_hz,
+                              flagged=flagged)
     for label, peaks in summary.items():
         found = ", ".join(f"{axis} {hz:.3f} Hz" for axis, hz in peaks.items() if axis != "main" and hz is not None)
         print(f"{label}: dominant frequency {found or 'n/a'} (spectra plotted: {peaks['main']})")
