@@ -57,17 +57,18 @@ MAX_TYPICAL_SIGMA_PX = 0.35
 # ... unless the motion is large against it: 0.5 px of uncertainty is hopeless for a 0.3 px
 # vibration and excellent for a 20 px swing. A clip still resolves its motion when, on one
 # axis, the typical uncertainty is at most MAX_SIGMA_TO_RANGE of the robust range (5-95 %)
-# of the readings on that axis (:func:`motion_resolution`). Noise alone spans 3.3 sigma
-# (0.30) and the dense methods' own sigma under-states their error by up to 3-4x (the
-# bench's 2-sigma coverage 0.13-0.3), so a twentieth keeps well clear of a clip that reads
-# its noise. Measured (defaults, whole deck polygon of scripts/tacoma.sh): the Tacoma deck with
-# dis 0.015-0.017 (0.30-0.34 px of a 20 px swing; 0.004 with --grid-step 4), deepflow-opencv
-# 0.02-0.07 (the 0.07 run reads the deck's swing at half dis's range: flagged); flagged as
-# before: the bench's CRF 30 clip with every dense baseline 0.08-0.11 (farneback 0.51; their
-# readings 0.65-3.3 px RMS off a 4.2 px swing), farneback on its bend and occlusion clips
-# 0.17 / 0.26, the workbench's 0.01 bit-per-pixel clip about 0.08 (estimated: 0.47 px of a
-# swing of about 5 px).
-MAX_SIGMA_TO_RANGE = 0.05
+# of the readings on that axis (:func:`motion_resolution`): a sinusoid's amplitude 16 sigmas.
+# Noise alone spans 3.3 sigma (0.30), and the dense methods' own sigma under-states their
+# error by up to 3-4x (the bench's 2-sigma coverage 0.13-0.3): at 0.03 their true error is
+# still about a tenth of the motion's range. Measured (defaults): the Tacoma deck (the deck
+# polygon of scripts/tacoma.sh) with dis 0.015-0.017 (0.30-0.34 px of a 20 px swing; 0.004
+# with --grid-step 4), deepflow-opencv 0.02-0.03 (0.07 in the tight ROI, where it reads half
+# dis's swing: flagged); flagged as before: the bench's CRF 30 clip with every dense baseline
+# 0.08-0.11 (farneback 0.51; their readings 0.65-3.3 px RMS off a 4.2 px swing), farneback on
+# the bench's bend and occlusion clips 0.17 / 0.26, the workbench's 0.01 bit-per-pixel clip
+# about 0.08 (estimated: 0.47 px of a swing of about 5 px), and scripts/tacoma.sh's near-curb
+# pieces with deepflow 0.033-0.083 (1-2 px; on one piece the reading jumps by 20-30 px).
+MAX_SIGMA_TO_RANGE = 0.03
 # The robust range of the motion: the spread between these percentiles of the readings.
 MOTION_PERCENTILES = (5.0, 95.0)
 

@@ -254,7 +254,7 @@ def test_a_clip_the_images_cannot_resolve_has_every_frame_flagged(sigma_dx, sigm
 
 
 @pytest.mark.parametrize("amplitude_px, unresolved", [
-    (3.0, True),    # 0.5 px of a 6 px swing: 0.09 of its range (the bench's CRF 30 clip: 0.08-0.11)
+    (3.0, True),    # 0.5 px of a 6 px swing: 0.08 of its range (the bench's CRF 30 clip: 0.08-0.11)
     (30.0, False),  # 0.5 px of a 60 px swing: 0.009 (the Tacoma deck with dis: 0.015-0.017)
 ])
 def test_an_uncertain_clip_that_resolves_a_large_motion_is_not_flagged(amplitude_px, unresolved) -> None:
