@@ -15,6 +15,7 @@ code 2, and no output file; anything else that goes wrong is a bug and shows its
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -211,7 +212,7 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
                    "whose top-left pixel is sensor pixel X,Y (a cropped recording); or a JSON file "
                    "holding 'video_origin_px': [X, Y]")
     p.add_argument("--mask", action="append", help="mask PNG (full-frame or ROI size, raw video pixels): "
-                   "white = POI; or grey values 1..N = regions 1..N, each measured on its own in one run; "
+                   "white = POI; or grey values 1..N (any labels up to 127) = regions, each measured on its own in one run; "
                    "repeat --mask for one region per file")
     p.add_argument("--rect", help="POIs in rectangle X,Y,W,H (raw full-frame pixels)")
     p.add_argument("--polygon", help="POIs in polygon X1,Y1,X2,Y2,... (raw full-frame pixels)")
@@ -329,6 +330,31 @@ def _raise_terminated(signum: int, frame: Any) -> None:
     raise Terminated()
 
 
+def _options_taking_a_value(parser: argparse.ArgumentParser) -> set[str]:
+    """Every ``--option`` of every subcommand that takes one value."""
+    found: set[str] = set()
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for subparser in action.choices.values():
+                found |= _options_taking_a_value(subparser)
+        elif action.option_strings and action.nargs is None:
+            found.update(o for o in action.option_strings if o.startswith("--"))
+    return found
+
+
+def _attach_dashed_values(argv: list[str], options: set[str]) -> list[str]:
+    """``--frames -10:5`` as ``--frames=-10:5``: argparse takes a value that starts with '-' and is
+    not a plain negative number for an option and dumps the usage; attached, the option's own
+    check says in one line what is wrong with it."""
+    out: list[str] = []
+    for token in argv:
+        if out and out[-1] in options and re.match(r"-[0-9.]", token):
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     import signal
     import threading
@@ -340,7 +366,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as err:
         print(f"refflow track: error: {err}", file=sys.stderr)
         return EXIT_USAGE
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_attach_dashed_values(list(argv), _options_taking_a_value(parser)))
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _raise_terminated)

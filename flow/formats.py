@@ -70,6 +70,11 @@ class _Part:
 def _open_part(path: Path) -> _Part:
     if not path.is_file():
         raise InputError(f"part {str(path)!r} does not exist: pass the files `refflow track --raw-tracks` wrote")
+    # Anything but a zip archive (a video, a CSV, a .npy) is no .npz: said here, before numpy
+    # reads it as a pickle and suggests loading it unsafely.
+    if not zipfile.is_zipfile(path):
+        raise InputError(f"{str(path)!r} is not a .npz archive: pass the raw-tracks files that "
+                         f"`refflow track --raw-tracks` wrote ({RAW_FORMAT})")
     try:
         with np.load(path, allow_pickle=False) as data:
             if "format" not in data.files or str(data["format"]) != RAW_FORMAT:
