@@ -254,8 +254,8 @@ BAD = {
                               "--known-length -5.0 is not a finite positive number"),
     "coincident points": (["{video}", "--mask", "{mask}", "--known-length", "5", "--between", "3,3,3,3"],
                           "the two points coincide"),
-    "zero fps video": (["{video}", "--mask", "{mask}", "--fps", "0"], "--fps 0.0 is not positive"),
-    "negative fps folder": (["{images}", "--mask", "{mask}", "--fps", "-30"], "--fps -30.0 is not positive"),
+    "zero fps video": (["{video}", "--mask", "{mask}", "--fps", "0"], "--fps 0.0 is not a finite positive number"),
+    "negative fps folder": (["{images}", "--mask", "{mask}", "--fps", "-30"], "--fps -30.0 is not a finite positive number"),
     "folder without fps": (["{images}", "--mask", "{mask}"], "pass --fps"),
     "unknown method": (["{video}", "--mask", "{mask}", "--method", "magic"], "unknown method 'magic'"),
     "bad method parameter": (["{video}", "--mask", "{mask}", "--param", "preset=warp"], "bad --param for dis"),
@@ -577,7 +577,7 @@ def test_merge_refuses_parts_that_do_not_fit(clip, tmp_path, capsys) -> None:
         err = capsys.readouterr().err
         assert expected in err and len(err.strip().splitlines()) == 1, err
     assert main(["merge", str(made["a"]), str(clip["mask"]), "--out", str(out)]) == 2
-    assert "not a readable .npz" in capsys.readouterr().err
+    assert "is not a .npz archive" in capsys.readouterr().err
     assert not out.exists() and not out.with_suffix(".json").exists()
 
 
