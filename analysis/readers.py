@@ -22,6 +22,8 @@ from refflow.csvtable import read_rows
 
 SENSOR_COLUMNS = ("time_s", "dx_mm")
 TRUTH_COLUMNS = ("frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "occluded")
+# A frame's reading and its uncertainty: NaN on flagged frames for analysis (see read_track).
+DISPLACEMENT_COLUMNS = ("dx_px", "dy_px", "dx_mm", "dy_mm", "sigma_dx_px", "sigma_dy_px", "sigma_px")
 _HEIGHT_COLUMN = re.compile(r"^dx_mm_z(\d{4})$")
 
 
@@ -116,6 +118,9 @@ def read_track(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     """Track CSV of one measurement point (format and reader: :mod:`refflow.trackcsv`), times
     strictly increasing; displacement cells may be NaN only on frames flagged ``valid=0``.
 
+    A method is judged on the frames it vouches for: the readings that a flagged frame keeps in
+    the file (``valid=0``) are NaN here, so no metric, alignment or figure uses them.
+
     A ``dx_mm`` column that is NaN throughout (flow run without a scale) is
     accepted: callers then convert ``dx_px`` with the render's ``mm_per_px``
     (see :func:`track_mm`).
@@ -134,6 +139,9 @@ def read_track(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
         if bad.any():
             raise ValueError(f"{path}: column {name!r} has {int(bad.sum())} NaN/inf value(s) "
                              "on frames flagged valid=1 (flag them valid=0 or fill them)")
+    for name in DISPLACEMENT_COLUMNS:
+        if name in cols:
+            cols[name] = np.where(valid, cols[name], np.nan)
     return cols
 
 

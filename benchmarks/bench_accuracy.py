@@ -93,12 +93,15 @@ def run_method(method: str, folder: Path, meta: dict, out: Path) -> dict:
     if proc.returncode != 0:
         return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
     sidecar = json.loads(out.with_suffix(".json").read_text())
-    if sidecar["quality"]["frames_valid"] == 0:  # nothing for the scorer: the tool flagged every frame
-        typical = sidecar["quality"].get("typical_sigma_px")
-        return {"flagged": "every frame flagged valid=0" + (f" (typical sigma {typical:.2f} px)" if typical else "")}
     score = subprocess.run([sys.executable, str(BENCH / "score.py"), str(folder), str(out)],
                            capture_output=True, text=True, check=True)
     result = json.loads(score.stdout)
+    quality = sidecar["quality"]
+    if quality["frames_valid"] == 0:  # the tool flagged every frame; its readings are kept and scored
+        typical, ratio = quality.get("typical_sigma_px"), (quality.get("motion") or {}).get("sigma_to_range")
+        result["flagged"] = ("every frame flagged valid=0" + (f" (typical sigma {typical:.2f} px" if typical else "")
+                             + (f", {ratio:.2f} of the motion's range)" if typical and ratio else ")" if typical else "")
+                             + (f"; the kept readings: RMSE {result['rmse_px']:.3f} px" if "rmse_px" in result else ""))
     n_frames = sidecar["input"]["frames_measured"]
     result["s_per_frame"] = sidecar["timings"]["frames_s"] / max(n_frames, 1)
     result["wall_s"] = wall
@@ -164,7 +167,7 @@ def table(results: dict, floors: dict, moto: dict, methods: list[str]) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for clip, per_method in results.items():
         floor = floors.get(clip, (float("nan"), float("nan")))
-        best = min((r["rmse_px"] for r in per_method.values() if "rmse_px" in r), default=None)
+        best = min((r["rmse_px"] for r in per_method.values() if "rmse_px" in r and "flagged" not in r), default=None)
         for i, name in enumerate(methods):
             r = per_method.get(name, {"error": "not run"})
             head = (f"{clip} | {fmt(floor[0])} / {fmt(floor[1])}" if i == 0 else " | ")
@@ -211,8 +214,9 @@ def main(argv: list[str] | None = None) -> int:
                 results[clip][name] = run_method(name, folder, meta, Path(tmp) / f"{clip}-{name}.csv")
                 r = results[clip][name]
                 print(f"{clip:14s} {name:16s} " + (f"rmse {r['rmse_px']:.3f} slope {r['slope']:.4f} "
-                      f"cov {r['coverage_2sigma']:.2f} {r['s_per_frame']:.3f} s/frame" if "rmse_px" in r
-                      else r.get("error") or r["flagged"]), file=sys.stderr, flush=True)
+                      f"cov {r['coverage_2sigma']:.2f} {r['s_per_frame']:.3f} s/frame"
+                      if "rmse_px" in r and "flagged" not in r else r.get("error") or r["flagged"]),
+                      file=sys.stderr, flush=True)
     moto = {} if args.no_motorcycle else motorcycle(methods)
     text = table(results, floors, moto, methods)
     print(text)

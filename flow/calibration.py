@@ -424,7 +424,7 @@ def scale_from_known_length(length_mm: float, between: str,
     undistorted image, whose pixels the displacement is measured in.
     """
     if not (math.isfinite(length_mm) and length_mm > 0):
-        raise InputError(f"--known-length {length_mm} is not positive: pass the length in mm")
+        raise InputError(f"--known-length {length_mm} is not a finite positive number: pass the length in mm")
     try:
         x1, y1, x2, y2 = (float(v) for v in between.split(","))
     except ValueError:

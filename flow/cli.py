@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -213,7 +214,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     units = args.units
     if units == "auto":
         units = "mm" if all(m["has_mm"] for _, _, m in measured) else "px"
-    series = {}
+    series, flagged = {}, {}
     for i, path, data in measured:
         if units == "mm" and not data["has_mm"]:
             raise InputError(f"{path} has no mm columns (tracked without a scale): use --units px")
@@ -223,9 +224,12 @@ def cmd_plot(args: argparse.Namespace) -> int:
         if label in series:
             label = f"{label} ({Path(path).stem})"
         series[label] = (data["time_s"], data[f"dx_{units}"], data[f"dy_{units}"])
+        flagged[label] = (data["time_s"], data["flagged"][f"dx_{units}"], data["flagged"][f"dy_{units}"])
         if not np.isfinite(series[label][1]).any():
-            print(f"refflow plot: note: {label} has no valid frame (see its sidecar's notes)", file=sys.stderr)
-    summary = spectrum_figure(series, args.out, units=units, title=args.title or "", min_hz=args.min_hz)
+            grey = ": its flagged readings are drawn grey" if np.isfinite(flagged[label][1]).any() else ""
+            print(f"refflow plot: note: {label} has no valid frame{grey} (see its sidecar's notes)", file=sys.stderr)
+    summary = spectrum_figure(series, args.out, units=units, title=args.title or "", min_hz=args.min_hz,
+                              flagged=flagged)
     for label, peaks in summary.items():
         found = ", ".join(f"{axis} {hz:.3f} Hz" for axis, hz in peaks.items() if axis != "main" and hz is not None)
         print(f"{label}: dominant frequency {found or 'n/a'} (spectra plotted: {peaks['main']})")
@@ -245,7 +249,7 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
                    "whose top-left pixel is sensor pixel X,Y (a cropped recording); or a JSON file "
                    "holding 'video_origin_px': [X, Y]")
     p.add_argument("--mask", action="append", help="mask PNG (full-frame or ROI size, raw video pixels): "
-                   "white = POI; or grey values 1..N = regions 1..N, each measured on its own in one run; "
+                   "white = POI; or grey values 1..N (any labels up to 127) = regions, each measured on its own in one run; "
                    "repeat --mask for one region per file")
     p.add_argument("--rect", help="POIs in rectangle X,Y,W,H (raw full-frame pixels)")
     p.add_argument("--polygon", help="POIs in polygon X1,Y1,X2,Y2,... (raw full-frame pixels)")
@@ -380,6 +384,31 @@ def _raise_terminated(signum: int, frame: Any) -> None:
     raise Terminated()
 
 
+def _options_taking_a_value(parser: argparse.ArgumentParser) -> set[str]:
+    """Every ``--option`` of every subcommand that takes one value."""
+    found: set[str] = set()
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for subparser in action.choices.values():
+                found |= _options_taking_a_value(subparser)
+        elif action.option_strings and action.nargs is None:
+            found.update(o for o in action.option_strings if o.startswith("--"))
+    return found
+
+
+def _attach_dashed_values(argv: list[str], options: set[str]) -> list[str]:
+    """``--frames -10:5`` as ``--frames=-10:5``: argparse takes a value that starts with '-' and is
+    not a plain negative number for an option and dumps the usage; attached, the option's own
+    check says in one line what is wrong with it."""
+    out: list[str] = []
+    for token in argv:
+        if out and out[-1] in options and re.match(r"-[0-9.]", token):
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     import signal
     import threading
@@ -391,7 +420,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as err:
         print(f"refflow track: error: {err}", file=sys.stderr)
         return EXIT_USAGE
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_attach_dashed_values(list(argv), _options_taking_a_value(parser)))
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _raise_terminated)

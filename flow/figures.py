@@ -36,8 +36,10 @@ def read_measurements(path: str | Path) -> list[dict[str, Any]]:
     one region), in label order.
 
     Each holds ``time_s``, ``dx_px``, ``dy_px``, ``dx_mm``, ``dy_mm`` arrays, ``has_mm`` (a
-    scale was given), ``label`` (the method; "method region K" in a run of several) and
-    ``region`` (the label K, None for a run of one region).
+    scale was given), ``label`` (the method; "method region K" in a run of several),
+    ``region`` (the label K, None for a run of one region) and ``flagged``: the readings the
+    flagged frames keep (``valid=0``), the same columns NaN elsewhere, for a figure to show
+    apart; nothing else here uses them.
     """
     path = Path(path)
     try:
@@ -59,7 +61,8 @@ def read_measurements(path: str | Path) -> list[dict[str, Any]]:
         valid = columns["valid"] != 0
         data: dict[str, Any] = {name: columns[name] if name == "time_s" else np.where(valid, columns[name], np.nan)
                                 for name in ("time_s", "dx_px", "dy_px", "dx_mm", "dy_mm")}
-        data["has_mm"] = bool(np.isfinite(data["dx_mm"]).any())
+        data["flagged"] = {name: np.where(valid, np.nan, columns[name]) for name in ("dx_px", "dy_px", "dx_mm", "dy_mm")}
+        data["has_mm"] = bool(np.isfinite(data["dx_mm"]).any() or np.isfinite(data["flagged"]["dx_mm"]).any())
         data["label"] = method if key is None else f"{method} region {key}"
         data["region"] = key
         out.append(data)
@@ -115,13 +118,16 @@ def dominant_frequency(time_s: np.ndarray, values: np.ndarray, *,
 
 
 def spectrum_figure(series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], path: str | Path, *,
-                    units: str = "px", title: str = "", min_hz: float | None = None) -> dict[str, dict[str, Any]]:
+                    units: str = "px", title: str = "", min_hz: float | None = None,
+                    flagged: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None) -> dict[str, dict[str, Any]]:
     """Time histories (dx, dy) and amplitude spectra of ``{label: (time_s, dx, dy)}``, overlaid.
 
     The spectra are of one axis for every series, so they compare: the axis
     along which the first series moves most (larger standard deviation). Each
-    series' dominant frequency on that axis is marked. Returns, per label,
-    ``{"dx": Hz, "dy": Hz, "main": "dx" | "dy"}`` (None where no peak).
+    series' dominant frequency on that axis is marked. ``flagged`` (same keys) holds the
+    readings of the frames flagged ``valid=0``: drawn grey in the time histories, never in
+    the spectra. Returns, per label, ``{"dx": Hz, "dy": Hz, "main": "dx" | "dy"}`` (None
+    where no peak).
     """
     import matplotlib
 
@@ -139,6 +145,10 @@ def spectrum_figure(series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
         main = "dx" if not np.nanstd(first_dy) > np.nanstd(first_dx) else "dy"
     for i, (label, (time_s, dx, dy)) in enumerate(series.items()):
         colour = colours[i % len(colours)]
+        grey = (flagged or {}).get(label)
+        if grey is not None and (np.isfinite(grey[1]).any() or np.isfinite(grey[2]).any()):
+            for ax, values in zip(axes[:2], grey[1:], strict=True):
+                ax.plot(grey[0], values, ".", ms=2.5, color="0.6", label=f"{label}: flagged (valid=0)")
         axes[0].plot(time_s, dx, lw=1.1, color=colour, label=label)
         axes[1].plot(time_s, dy, lw=1.1, color=colour, label=label)
         peaks: dict[str, Any] = {}
@@ -166,7 +176,8 @@ def spectrum_figure(series: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
     axes[2].set_xlim(0, min(nyquist, max(2.0, 4 * max(found))) if found else nyquist)
     for ax in axes:
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper right", fontsize=8)
+        if ax.get_legend_handles_labels()[0]:  # a spectrum of only flagged readings has none
+            ax.legend(loc="upper right", fontsize=8)
     if title:
         axes[0].set_title(title)
     fig.tight_layout()

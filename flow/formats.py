@@ -22,16 +22,15 @@ from flow.tracks import CHAIN_COUNTS, Measurement, Tracks
 
 def iter_rows(result: Measurement, mm_per_px: float) -> Iterable[dict[str, Any]]:
     """The track CSV's rows of one region (:func:`refflow.trackcsv.write` adds the region
-    column); invalid frames report NaN displacement instead of a fake motion."""
+    column). Every frame keeps its reading and uncertainty, flagged or not: ``valid`` qualifies
+    the number, the reader decides (NaN only where nothing was measured)."""
     tr = result.tracks
     for i in range(len(tr.frame)):
-        ok = bool(result.valid[i])
-        dx = float(result.filtered.dx[i]) if ok else float("nan")
-        dy = float(result.filtered.dy[i]) if ok else float("nan")
-        sx = float(result.sigma_dx[i]) if ok and result.sigma_dx is not None else float("nan")
-        sy = float(result.sigma_dy[i]) if ok and result.sigma_dy is not None else float("nan")
+        dx, dy = float(result.filtered.dx[i]), float(result.filtered.dy[i])
+        sx = float(result.sigma_dx[i]) if result.sigma_dx is not None else float("nan")
+        sy = float(result.sigma_dy[i]) if result.sigma_dy is not None else float("nan")
         yield {"frame": int(tr.frame[i]), "time_s": float(tr.time_s[i]), "dx_px": dx, "dy_px": dy,
-               "dx_mm": dx * mm_per_px, "dy_mm": dy * mm_per_px, "valid": int(ok),
+               "dx_mm": dx * mm_per_px, "dy_mm": dy * mm_per_px, "valid": int(bool(result.valid[i])),
                "sigma_dx_px": sx, "sigma_dy_px": sy, "sigma_px": float(np.hypot(sx, sy)),
                "poi_kept_frac": float(result.poi_kept_frac[i]), "residual": float(tr.residual[i]),
                "flow_spread_px": float(result.flow_spread_px[i]),
@@ -71,6 +70,11 @@ class _Part:
 def _open_part(path: Path) -> _Part:
     if not path.is_file():
         raise InputError(f"part {str(path)!r} does not exist: pass the files `refflow track --raw-tracks` wrote")
+    # Anything but a zip archive (a video, a CSV, a .npy) is no .npz: said here, before numpy
+    # reads it as a pickle and suggests loading it unsafely.
+    if not zipfile.is_zipfile(path):
+        raise InputError(f"{str(path)!r} is not a .npz archive: pass the raw-tracks files that "
+                         f"`refflow track --raw-tracks` wrote ({RAW_FORMAT})")
     try:
         with np.load(path, allow_pickle=False) as data:
             if "format" not in data.files or str(data["format"]) != RAW_FORMAT:

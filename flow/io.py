@@ -252,6 +252,11 @@ def mp4_missing_bytes(path: Path) -> int:
 def diagnose_unreadable(path: Path) -> str:
     """One-line reason why OpenCV cannot open the video ``path``, and what to do."""
     name = str(path)
+    if path.suffix.lower() == ".mraw":  # the frames alone: size, depth and rate are in the header
+        header = next((h for h in (path.with_suffix(s) for s in (".cih", ".cihx", ".CIH", ".CIHX")) if h.is_file()),
+                      None)
+        return (f"{name!r} holds the frames of a Photron recording, without their size and rate: open the .cih "
+                f"(the Photron header) {'beside it' if header is None else repr(str(header))} instead")
     if path.stat().st_size == 0:
         return f"video {name!r} is empty (0 bytes): copy it again from the camera"
     opened, packets = _ffmpeg_report(path)

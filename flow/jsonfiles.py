@@ -21,7 +21,8 @@ def load_json(path: str | Path, what: str) -> Any:
     is not JSON here either.
     """
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        # utf-8-sig: Windows editors (Notepad) start a UTF-8 file with a byte-order mark
+        text = Path(path).read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise InputError(f"{what} does not exist: check the path") from None
     except UnicodeDecodeError:

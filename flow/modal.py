@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from flow.errors import InputError
-from flow.figures import read_measurements, resample_uniform
+from flow.figures import dominant_frequency, read_measurements, resample_uniform
 from flow.outputs import check_outputs
 from refflow.io import atomic_paths, finite_or_none, json_text, versions
 
@@ -101,6 +101,9 @@ def run_modal(csv_paths: list[str | Path], *, out_json: str | Path, out_prefix: 
     regions = [data["region"] for data in measured]
     result = _result(record, modes, diagnostics, _points(point_paths, regions, record), units=units,
                      direction=direction, n_modes=n_modes)
+    below = _below_band(record, diagnostics["band_hz"])
+    if below:
+        result["notes"].append(below)
     backdrop, why_not = reference_backdrop(paths[0], result["points"])
     pictures: list[Path] = []
     if backdrop is None:
@@ -143,6 +146,28 @@ def _identify(record: dict[str, Any], n_modes: int,
         raise InputError(f"modal identification of the common record ({samples} samples, {seconds:.3g} s) "
                          f"failed: {err}: measure a longer record or widen --band") from None
     return modes, diagnostics
+
+
+def _below_band(record: dict[str, Any], band_hz: tuple[float, float]) -> str | None:
+    """A note where the record's strongest motion (the amplitude spectrum's peak, as `refflow
+    plot` finds it) lies below the band searched, else None.
+
+    The band's default floor (0.5 Hz) stays: below it a short record holds too few cycles
+    for FDD and SSI to tell a mode from drift (a mode needs several cycles in the record;
+    Tacoma's deck swings 2.4 times in 8.3 s). But the strongest motion of the record is
+    never left out silently: the note names it and the --band that would search it.
+    """
+    series, rate_hz = record["series"], record["rate_hz"]
+    strongest = series[int(np.argmax(np.std(series, axis=1)))]
+    peak, _, _ = dominant_frequency(np.arange(strongest.size) / rate_hz, strongest)
+    low, high = band_hz
+    if peak is None or peak >= low:
+        return None
+    seconds = strongest.size / rate_hz
+    lower = math.floor(8.0 * peak) / 10.0  # a fifth below the peak, to one decimal
+    return (f"the record's strongest motion is at {peak:.3g} Hz ({peak * seconds:.1f} cycles in {seconds:.3g} s), "
+            f"below the band searched ({low:g}-{high:g} Hz): not identified as a mode; pass --band {lower:g},{high:g} "
+            "to search it (a longer record resolves it better)")
 
 
 def _points(point_paths: list[Path], regions: list[int | None], record: dict[str, Any]) -> list[dict[str, Any]]:
@@ -309,6 +334,9 @@ def _common_record(paths: list[str], measured: list[dict[str, Any]], units: str,
             notes.append(f"{path}: {gaps} of {last + 1 - first} frames invalid and bridged linearly: "
                          "its shape values rest on interpolation")
     assert grid is not None
+    if all(np.ptp(samples) == 0 for samples in series):
+        raise InputError(f"{', '.join(map(str, paths))}: the displacement is constant over the valid frames "
+                         "(nothing moves): no vibration to identify; check the measurement's mask and method")
     trimmed = int(first + (len(time_s) - 1 - last))
     if trimmed:
         notes.append(f"{trimmed} frames at the start or end left out: not every point measured them")

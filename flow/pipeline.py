@@ -154,8 +154,11 @@ def track(options: TrackOptions) -> Outcome:
     check_reference(setup.source, options.reference_frame, options.reference_average, setup.labels > 0,
                     setup.undistort)
     tracks = _track_frames(options, setup, method, lambda: build_method(name, params), sparse, jobs, frames, notes)
-    if not setup.scale.given:
-        notes.append(NO_SCALE_NOTE)
+    if not setup.scale.given:  # on the console too where a CSV's mm columns stay empty
+        if options.outputs.csv:
+            _note(notes, NO_SCALE_NOTE)
+        else:
+            notes.append(NO_SCALE_NOTE)
     source = setup.source
     if source.bit_depth > 8 and not method.full_depth:
         notes.append(f"{name} takes 8-bit images: the {source.bit_depth}-bit data was rounded to 8 bits for it "
@@ -320,6 +323,7 @@ def merge(options: MergeOptions) -> tuple[int, Outcome]:
     notes = [note for meta in metas for note in meta.get("notes", []) if "no scale given" not in note]
     if not scale.given:
         notes.append(NO_SCALE_NOTE)
+        print(f"refflow merge: note: {NO_SCALE_NOTE}", file=sys.stderr)
     run = replace(
         first, tool="refflow merge",
         input=replace(first.input, frames_decoded=max(m["input"]["frames_decoded"] for m in metas),

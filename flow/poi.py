@@ -13,10 +13,11 @@ from flow.io import DISPLAY_ROTATIONS, InputError, Roi
 
 def mask_labels(image: np.ndarray) -> np.ndarray:
     """Region labels (int32, 0 = no POI) of a mask image: an image whose non-zero grey values
-    are exactly 1, 2, ..., N (N < 128) is a labelled mask of N regions; any other image is a
+    all lie in 1..127 is a labelled mask, each value a region keeping its label (1, 2, ..., N,
+    or with gaps: a mask of regions 1 and 3 measures regions 1 and 3); any other image is a
     binary mask, white (> 127) = POI, one region (label 1)."""
     values = np.unique(image[image > 0])
-    if values.size and values[-1] < 128 and np.array_equal(values, np.arange(1, values.size + 1)):
+    if values.size and values[-1] < 128:
         return image.astype(np.int32)
     return (image > 127).astype(np.int32)
 

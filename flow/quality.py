@@ -5,8 +5,8 @@ view blocked), when no POI was measured, or when the POIs that survive the eq. 1
 filters scatter far more than usual; :func:`measure` alternates the flags and the
 filtering until they settle, then reports the averaged displacement, each frame's
 consistent fraction of POIs and the uncertainty of the mean. A clip whose typical frame the
-images cannot resolve to a fraction of a pixel (:func:`typical_sigma`) has every frame
-flagged.
+images cannot resolve to a fraction of a pixel (:func:`typical_sigma`), nor to a small
+fraction of its motion (:func:`motion_resolution`), has every frame flagged.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from flow.filtering import (
     row_blocks,
 )
 from flow.robust import MAD_TO_SIGMA
-from flow.tracks import Measurement, Tracks
+from flow.tracks import Measurement, Resolution, Tracks
 
 # Quality thresholds of :func:`measure`, the defaults of the flags it calls.
 # A frame's photometric residual (mean |grey difference| at the POIs) counts as a blocked
@@ -54,6 +54,23 @@ BAND_RELATIVE = 0.25
 # 0.53, where dis's RMSE is 1.26 px); the workbench's 0.01 bit-per-pixel clip 0.47 / 0.54,
 # with errors of about 1 px.
 MAX_TYPICAL_SIGMA_PX = 0.35
+# ... unless the motion is large against it: 0.5 px of uncertainty is hopeless for a 0.3 px
+# vibration and excellent for a 20 px swing. A clip still resolves its motion when, on one
+# axis, the typical uncertainty is at most MAX_SIGMA_TO_RANGE of the robust range (5-95 %)
+# of the readings on that axis (:func:`motion_resolution`): a sinusoid's amplitude 16 sigmas.
+# Noise alone spans 3.3 sigma (0.30), and the dense methods' own sigma under-states their
+# error by up to 3-4x (the bench's 2-sigma coverage 0.13-0.3): at 0.03 their true error is
+# still about a tenth of the motion's range. Measured (defaults): the Tacoma deck (the deck
+# polygon of scripts/tacoma.sh) with dis 0.015-0.017 (0.30-0.34 px of a 20 px swing; 0.004
+# with --grid-step 4), deepflow-opencv 0.02-0.03 (0.07 in the tight ROI, where it reads half
+# dis's swing: flagged); flagged as before: the bench's CRF 30 clip with every dense baseline
+# 0.08-0.11 (farneback 0.51; their readings 0.65-3.3 px RMS off a 4.2 px swing), farneback on
+# the bench's bend and occlusion clips 0.17 / 0.26, the workbench's 0.01 bit-per-pixel clip
+# about 0.08 (estimated: 0.47 px of a swing of about 5 px), and scripts/tacoma.sh's near-curb
+# pieces with deepflow 0.033-0.083 (1-2 px; on one piece the reading jumps by 20-30 px).
+MAX_SIGMA_TO_RANGE = 0.03
+# The robust range of the motion: the spread between these percentiles of the readings.
+MOTION_PERCENTILES = (5.0, 95.0)
 
 
 def flag_invalid(residual: np.ndarray, *, k_mad: float = RESIDUAL_K_MAD, ratio: float = RESIDUAL_RATIO,
@@ -155,7 +172,8 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
             spread_ratio: float = SPREAD_RATIO, spread_floor_px: float = SPREAD_FLOOR_PX,
             check_coherence: bool = True, max_rounds: int = 3, band_ratio: float = BAND_RATIO,
             band_floor_px: float = BAND_FLOOR_PX, band_relative: float = BAND_RELATIVE,
-            max_typical_sigma_px: float = MAX_TYPICAL_SIGMA_PX) -> Measurement:
+            max_typical_sigma_px: float = MAX_TYPICAL_SIGMA_PX,
+            max_sigma_to_range: float = MAX_SIGMA_TO_RANGE) -> Measurement:
     """Quality flags, eq. (10)-(12) filtering and averaging of a run's tracks.
 
     A frame is invalid when its photometric residual is far above its baseline
@@ -172,8 +190,10 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
     band_floor_px)``.
 
     Where the method reports the images' own uncertainty (``tracks.sigma_dx``), a clip whose
-    :func:`typical_sigma` exceeds ``max_typical_sigma_px`` (0: never) has every frame flagged
-    (``Measurement.unresolved``): its readings are not sub-pixel measurements.
+    :func:`typical_sigma` exceeds ``max_typical_sigma_px`` (0: never) and, on its better axis,
+    ``max_sigma_to_range`` of the motion's robust range (:func:`motion_resolution`) has every
+    frame flagged (``Measurement.unresolved``): it resolves neither a sub-pixel reading nor
+    its motion. The readings stay in ``filtered``: a flag qualifies a number, never deletes it.
     """
     photometric, threshold = flag_invalid(tracks.residual, k_mad=residual_k_mad, ratio=residual_ratio,
                                           floor=residual_floor)
@@ -205,15 +225,43 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
         sigma_dx = with_reference_term(np.asarray(tracks.sigma_dx, float), valid)
         sigma_dy = with_reference_term(np.asarray(tracks.sigma_dy, float), valid)
         precision_px = typical_sigma(sigma_dx, sigma_dy, valid)
-        unresolved = bool(max_typical_sigma_px > 0 and precision_px > max_typical_sigma_px)
+        motion = motion_resolution(filtered.dx, filtered.dy, sigma_dx, sigma_dy, valid)
+        unresolved = bool(max_typical_sigma_px > 0 and precision_px > max_typical_sigma_px
+                          and not motion.ratio <= max_sigma_to_range)
         if unresolved:
             valid = np.zeros_like(valid)
     else:
         # Features followed on their own (KLT): the standard error of their mean.
         sigma_dx = _per_frame(tracks, filtered.kept, lambda bx, by: _standard_error(bx))
         sigma_dy = _per_frame(tracks, filtered.kept, lambda bx, by: _standard_error(by))
+        motion = Resolution()
     return Measurement(tracks, filtered, valid, kept_frac, spread, threshold, band, sigma_dx, sigma_dy,
-                       typical_sigma_px=precision_px, unresolved=unresolved)
+                       typical_sigma_px=precision_px, unresolved=unresolved, resolution=motion)
+
+
+def motion_resolution(dx: np.ndarray, dy: np.ndarray, sigma_dx: np.ndarray, sigma_dy: np.ndarray,
+                      valid: np.ndarray, *, percentiles: tuple[float, float] = MOTION_PERCENTILES) -> Resolution:
+    """How well a clip resolves its own motion: per axis, the median standard uncertainty of the
+    valid frames against the robust range (5-95 %) of their readings; the axis whose ratio is
+    smaller (NaN fields without two valid frames).
+
+    The robust range, because a few wild frames (a twist the flow cannot follow) must not
+    make a clip look resolved; per axis, because a member's outline fixes only the motion
+    across it, and the uncertainty of one axis says nothing of the other's motion.
+    """
+    valid = np.asarray(valid, bool)
+    best = Resolution()
+    for axis, values, sigma in (("dx", dx, sigma_dx), ("dy", dy, sigma_dy)):
+        values, sigma = np.asarray(values, float), np.asarray(sigma, float)
+        readings = values[valid & np.isfinite(values)]
+        sigmas = sigma[valid & np.isfinite(sigma)]
+        if readings.size < 2 or sigmas.size == 0:
+            continue
+        low, high = np.percentile(readings, percentiles)
+        found = Resolution(axis=axis, sigma_px=float(np.median(sigmas)), range_px=float(high - low))
+        if not best.ratio <= found.ratio:  # NaN (none yet) loses to any number
+            best = found
+    return best
 
 
 def typical_sigma(sigma_dx: np.ndarray, sigma_dy: np.ndarray, valid: np.ndarray) -> float:

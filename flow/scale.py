@@ -19,7 +19,8 @@ from flow.options import ScaleOptions
 # No camera images a structure at a kilometre per pixel: a larger scale is a typing error
 # (and would overflow the mm columns).
 MAX_MM_PER_PX = 1e6
-NO_SCALE_NOTE = "no scale given: pass --mm-per-px or --known-length/--between for mm"
+NO_SCALE_NOTE = ("no scale given: measuring in pixels (the mm columns are NaN); pass --mm-per-px, "
+                 "--known-length/--between or --scale-file for mm")
 
 
 @dataclass(frozen=True)
@@ -37,7 +38,7 @@ class Scale:
 
 def positive(name: str, value: float | None, what: str) -> None:
     if value is not None and not (math.isfinite(value) and value > 0):
-        raise InputError(f"{name} {value} is not positive: pass {what} > 0")
+        raise InputError(f"{name} {value} is not a finite positive number: pass {what} > 0")
 
 
 def check_scale_options(options: ScaleOptions) -> None:

@@ -104,6 +104,24 @@ class Tracks:
                        sigma_dx=column(self.sigma_dx), sigma_dy=column(self.sigma_dy), region=None)
 
 
+@dataclass(frozen=True)
+class Resolution:
+    """How well a clip resolves its motion on its better axis (:func:`flow.quality.motion_resolution`):
+    the axis, its typical standard uncertainty and the robust (5-95 %) range of its readings, px.
+    NaN where not known (no uncertainty from the method, fewer than two valid frames)."""
+
+    axis: str = ""
+    sigma_px: float = float("nan")
+    range_px: float = float("nan")
+
+    @property
+    def ratio(self) -> float:
+        """``sigma_px / range_px`` (inf for a motion of no range, NaN where unknown)."""
+        if not (np.isfinite(self.sigma_px) and np.isfinite(self.range_px)):
+            return float("nan")
+        return self.sigma_px / self.range_px if self.range_px > 0 else float("inf")
+
+
 @dataclass
 class Measurement:
     """Filtered, averaged displacement with quality flags."""
@@ -118,4 +136,5 @@ class Measurement:
     sigma_dx: np.ndarray | None = None  # (F,) px, standard uncertainty of dx
     sigma_dy: np.ndarray | None = None
     typical_sigma_px: float = float("nan")  # :func:`flow.quality.typical_sigma`
-    unresolved: bool = False  # every frame flagged: the typical frame is not sub-pixel
+    unresolved: bool = False  # every frame flagged: resolves neither a sub-pixel reading nor its motion
+    resolution: Resolution = field(default_factory=Resolution)

@@ -16,6 +16,7 @@ import numpy as np
 
 from flow.options import FilterOptions, OutputOptions, RunInfo
 from flow.outputs import check_outputs, check_sidecar, writing
+from flow.quality import MAX_SIGMA_TO_RANGE
 from flow.scale import Scale
 from refflow import trackcsv
 from refflow.io import atomic_paths, finite_or_none, json_text, versions
@@ -50,10 +51,13 @@ def measure_regions(tracks: Any, filtering: FilterOptions, sparse: bool) -> tupl
 
 def unresolved_note(result: Any, filtering: FilterOptions) -> str:
     """The note (and stderr warning) of a region whose every frame was flagged for its precision."""
+    motion = result.resolution
+    against = (f" and {motion.ratio:.2f} of the motion's 5-95 % range on {motion.axis} ({motion.sigma_px:.2f} of "
+               f"{motion.range_px:.2f} px, above {MAX_SIGMA_TO_RANGE:g})" if motion.axis else "")
     return (f"the typical frame's standard uncertainty is {result.typical_sigma_px:.2f} px, above the "
-            f"{filtering.max_typical_sigma_px:g} px a sub-pixel reading needs (heavy compression, noise or too little "
-            "texture): every frame is flagged valid=0; record at a higher bit rate, or pass "
-            "--max-typical-sigma 0 to keep the readings")
+            f"{filtering.max_typical_sigma_px:g} px a sub-pixel reading needs{against} (heavy compression, noise or "
+            "too little texture): every frame is flagged valid=0, its reading kept; record at a higher bit rate, or "
+            "pass --max-typical-sigma 0 to vouch for the readings")
 
 
 def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list[tuple[str, Path]],
@@ -130,7 +134,13 @@ def _quality(result: Any) -> dict[str, Any]:
     return {"frames_valid": n_valid, "frames_invalid": int(len(result.valid) - n_valid),
             "residual_threshold": finite_or_none(result.residual_threshold),
             "consistency_band_px": finite_or_none(result.consistency_band_px),
-            "typical_sigma_px": finite_or_none(result.typical_sigma_px), "unresolved": bool(result.unresolved)}
+            "typical_sigma_px": finite_or_none(result.typical_sigma_px),
+            "motion": {"axis": result.resolution.axis or None,
+                       "sigma_px": finite_or_none(result.resolution.sigma_px),
+                       "range_px": finite_or_none(result.resolution.range_px),
+                       "sigma_to_range": finite_or_none(result.resolution.ratio),
+                       "max_sigma_to_range": MAX_SIGMA_TO_RANGE},
+            "unresolved": bool(result.unresolved)}
 
 
 def sidecar(run: RunInfo, filtering: FilterOptions, notes: list[str], results: list[tuple[int, Any]],

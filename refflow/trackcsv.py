@@ -21,12 +21,14 @@ from refflow.csvtable import read_rows
 COLUMNS: dict[str, str | None] = {
     "frame": None,
     "time_s": "s",
+    # Every frame keeps its reading, flagged or not: valid = 0 qualifies the number (the
+    # readers of plot, modal, export, the GUI and analysis use valid frames only).
     "dx_px": "px, + = image right",
     "dy_px": "px, + = image down",
     "dx_mm": "mm",
     "dy_mm": "mm",
-    "valid": None,
-    "sigma_dx_px": "px, standard uncertainty of dx_px (NaN on invalid frames)",
+    "valid": "1: a reading the tool vouches for; 0: flagged, the reading kept beside the flag",
+    "sigma_dx_px": "px, standard uncertainty of dx_px",
     "sigma_dy_px": "px, standard uncertainty of dy_px",
     "sigma_px": "px, standard uncertainty of the displacement vector, sqrt(sigma_dx_px^2 + sigma_dy_px^2)",
     "poi_kept_frac": "fraction of kept POIs measured and consistent with the frame's median",

@@ -2,9 +2,10 @@
 
 A painted bar over a textured wall, x264 at CRF 30 (the paint's texture gone, the outlines
 smeared): dis reads it about 0.7 px RMS off the truth and its own uncertainty says so (0.7 px
-typical), so `refflow track` flags every frame, says why on stderr and in the sidecar, and
-writes no displacement; deepflow reads the same clip to about a quarter of a pixel (typical
-uncertainty 0.21 px) and keeps its frames. ``--max-typical-sigma 0`` keeps dis's readings.
+typical, a large part of the bar's swing), so `refflow track` flags every frame, says why on
+stderr and in the sidecar, and keeps each frame's reading beside its flag; deepflow reads the
+same clip to about a quarter of a pixel (typical uncertainty 0.21 px) and keeps its frames
+valid. ``--max-typical-sigma 0`` vouches for dis's readings.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 import pytest
 
 from flow.cli import main
+from flow.quality import MAX_SIGMA_TO_RANGE
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "unit"))
 from _lowtex_clip import encode, make_clip  # noqa: E402
@@ -51,13 +53,18 @@ def test_an_unresolved_clip_is_flagged_and_a_resolved_one_is_not(clip, tmp_path,
     err = capsys.readouterr().err
     assert meta["quality"]["unresolved"] is True and meta["quality"]["typical_sigma_px"] > 0.35
     assert meta["quality"]["frames_valid"] == 0 and meta["filter"]["max_typical_sigma_px"] == 0.35
-    assert all(r["valid"] == "0" and r["dx_px"] == "nan" for r in rows)
-    assert "every frame is flagged valid=0" in err and "--max-typical-sigma 0" in err
+    motion = meta["quality"]["motion"]
+    assert motion["sigma_to_range"] > motion["max_sigma_to_range"] == MAX_SIGMA_TO_RANGE
+    assert motion["sigma_to_range"] == pytest.approx(motion["sigma_px"] / motion["range_px"])
+    assert all(r["valid"] == "0" for r in rows)
+    assert "every frame is flagged valid=0, its reading kept" in err and "--max-typical-sigma 0" in err
+    assert "of the motion's 5-95 % range" in err
     assert any("typical frame's standard uncertainty" in note for note in meta["notes"])
-    # the readings it would have given are indeed not sub-pixel ones
+    # the flagged readings are in the file, and indeed not sub-pixel ones
+    assert _rmse(rows, clip["truth"]) > 0.5
     kept, meta = _track(clip, tmp_path / "dis_kept.csv", "--method", "dis", "--max-typical-sigma", "0")
     assert meta["quality"]["unresolved"] is False and all(r["valid"] == "1" for r in kept)
-    assert _rmse(kept, clip["truth"]) > 0.5
+    assert [r["dx_px"] for r in kept] == [r["dx_px"] for r in rows]
     # deepflow resolves the same clip and keeps every frame
     rows, meta = _track(clip, tmp_path / "deepflow.csv")
     assert meta["quality"]["unresolved"] is False and meta["quality"]["typical_sigma_px"] < 0.3
@@ -92,4 +99,4 @@ def test_merge_measures_again_and_plot_says_what_it_lacks(clip, tmp_path, capsys
     capsys.readouterr()
     assert main(["plot", str(flagged), str(measured), "--units", "px", "--out", str(tmp_path / "p.png")]) == 0
     out = capsys.readouterr()
-    assert "has no valid frame" in out.err and "spectra plotted: dx" in out.out
+    assert "has no valid frame: its flagged readings are drawn grey" in out.err and "spectra plotted: dx" in out.out

@@ -221,9 +221,10 @@ def test_uncertainty_carries_the_reference_frames_own_error() -> None:
     assert np.isclose(total[0], np.hypot(5.0, 0.03))
 
 
-def _tracks_with_sigma(sigma_dx: float, sigma_dy: float, n_frames: int = 120, seed: int = 4):
+def _tracks_with_sigma(sigma_dx: float, sigma_dy: float, n_frames: int = 120, seed: int = 4,
+                       amplitude_px: float = 3.0):
     rng = np.random.default_rng(seed)
-    motion = 3.0 * np.sin(np.arange(n_frames) / 5.0)
+    motion = amplitude_px * np.sin(np.arange(n_frames) / 5.0)
     dx = motion[:, None] + 0.05 * rng.standard_normal((n_frames, 40))
     tracks = _tracks(dx, 0.05 * rng.standard_normal((n_frames, 40)))
     return dataclasses.replace(tracks, sigma_dx=np.full(n_frames, sigma_dx) * rng.uniform(0.8, 1.2, n_frames),
@@ -250,6 +251,48 @@ def test_a_clip_the_images_cannot_resolve_has_every_frame_flagged(sigma_dx, sigm
     # 0 turns the check off; a looser limit keeps the frames
     assert measure(_tracks_with_sigma(sigma_dx, sigma_dy), max_typical_sigma_px=0).valid.all()
     assert measure(_tracks_with_sigma(sigma_dx, sigma_dy), max_typical_sigma_px=1.0).valid.all()
+
+
+@pytest.mark.parametrize("amplitude_px, unresolved", [
+    (3.0, True),    # 0.5 px of a 6 px swing: 0.08 of its range (the bench's CRF 30 clip: 0.08-0.11)
+    (30.0, False),  # 0.5 px of a 60 px swing: 0.009 (the Tacoma deck with dis: 0.015-0.017)
+])
+def test_an_uncertain_clip_that_resolves_a_large_motion_is_not_flagged(amplitude_px, unresolved) -> None:
+    """Precision is judged against what is measured: the same 0.5 px typical uncertainty is
+    flagged for a few pixels of motion and kept for tens. Either way every frame keeps its
+    reading (the flag qualifies it), and the measurement reports the sigma, the motion's 5-95 %
+    range and their ratio on the better axis."""
+    from flow.quality import MAX_SIGMA_TO_RANGE, MAX_TYPICAL_SIGMA_PX, measure
+
+    tracks = _tracks_with_sigma(0.35, 0.6, amplitude_px=amplitude_px)
+    result = measure(tracks)
+    assert result.typical_sigma_px > MAX_TYPICAL_SIGMA_PX
+    motion = result.resolution
+    assert motion.axis == "dx" and motion.sigma_px == pytest.approx(result.typical_sigma_px)
+    # 5-95 % of a sine: 2 sin(0.45 pi) = 1.98 amplitudes
+    assert motion.range_px == pytest.approx(1.98 * amplitude_px, rel=0.05)
+    assert motion.ratio == pytest.approx(motion.sigma_px / motion.range_px)
+    assert result.unresolved is unresolved and (motion.ratio > MAX_SIGMA_TO_RANGE) is unresolved
+    assert bool(result.valid.any()) is not unresolved
+    truth = amplitude_px * np.sin(np.arange(120) / 5.0)
+    assert np.abs(result.filtered.dx - truth).max() < 0.1, "the readings are kept, flagged or not"
+
+
+def test_the_better_axis_judges_resolution() -> None:
+    """Per axis, sigma against that axis's own motion; the smaller ratio wins (a vertical member
+    swinging sideways is judged on dx, whatever dy's uncertainty)."""
+    from flow.quality import motion_resolution
+
+    frames = np.arange(200)
+    dx, dy = 10.0 * np.sin(frames / 7.0), 0.2 * np.sin(frames / 7.0)
+    valid = np.ones(200, bool)
+    found = motion_resolution(dx, dy, np.full(200, 0.4), np.full(200, 0.05), valid)
+    assert found.axis == "dx" and found.sigma_px == pytest.approx(0.4) and found.ratio < 0.03
+    # a wild frame does not widen the robust range; flagged frames take no part
+    dx[50], valid[60:] = 500.0, False
+    assert motion_resolution(dx, dy, np.full(200, 0.4), np.full(200, 0.05), valid).range_px < 21.0
+    nothing = motion_resolution(dx, dy, np.full(200, 0.4), np.full(200, 0.05), np.zeros(200, bool))
+    assert nothing.axis == "" and np.isnan(nothing.ratio)
 
 
 def test_features_followed_on_their_own_are_never_flagged_for_precision() -> None:
