@@ -150,6 +150,12 @@ class RegionFit:
         self._strip = np.minimum(((along - along.min()) / max(np.ptp(along), 1e-9) * STRIPS).astype(np.intp),
                                  STRIPS - 1)
         self.textured = self._f_norm > 0 and bool(np.all(np.isfinite(self._jacobian)))
+        # The texture's strength: the rms grey-level gradient over the region (the reference
+        # smoothed over a pixel, so that sensor noise does not count), along x and y.
+        smooth = ndimage.gaussian_filter(ref, 1.0)
+        self.gradient_rms = tuple(
+            float(np.sqrt(np.mean(ndimage.correlate1d(smooth, _DERIVATIVE, axis=axis, mode="nearest")[rows, cols] ** 2)))
+            for axis in (1, 0))
 
     def field(self, params: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The displacement ``(u, v)`` the affine ``params`` give at the pixels (float64)."""

@@ -120,14 +120,22 @@ def _mismatch(reference: np.ndarray, current: np.ndarray, cols: np.ndarray, rows
 # (panel, whole view, bolted plate, girder): 0.003-0.006 px; a wide painted bar at CRF 12
 # (the bench's lowtex-wide): down to 0.01-0.02 in some frames, where the outline is better.
 TEXTURE_ENOUGH_PX = 0.012
+# ... and only where the texture is strong: an rms grey-level gradient over the region of at
+# least MIN_TEXTURE_GRADIENT grey levels per pixel on both axes (a codec rebuilds about a
+# grey level of a texture differently from frame to frame, so a fainter texture carries no
+# displacement a codec leaves alone). Measured on the reference frames of the bench: painted
+# bars 0.23-0.67; textured panel, whole view, bolted plate, slab, girder 1.5-7.7; the shaded
+# column 4.1 across and 0.2 along.
+MIN_TEXTURE_GRADIENT = 1.0
 # The readings a region can take, in the sidecar's counts (``<model>_readings``).
 MODELS = ("outline", "affine", "dense")
 
 
-def _choose(affine: tuple | None, outline: tuple | None) -> tuple[tuple | None, str, str]:
+def _choose(affine: tuple | None, outline: tuple | None, strong: bool) -> tuple[tuple | None, str, str]:
     """The reading a region takes from its affine texture fit and its outline fit (each
-    ``(u, v, (sigma_x, sigma_y))`` or None), the model's name and why."""
-    if affine is not None and max(affine[2]) <= TEXTURE_ENOUGH_PX:
+    ``(u, v, (sigma_x, sigma_y))`` or None; ``strong``: the region's texture is strong enough
+    to be trusted over an outline), the model's name and why."""
+    if affine is not None and strong and max(affine[2]) <= TEXTURE_ENOUGH_PX:
         return affine, "affine", "the texture fixes the motion on both axes"
     if outline is not None:
         why = "no texture to fit" if affine is None else "the texture is too faint to fix the motion"
@@ -424,7 +432,8 @@ class DeepFlow(DenseMethod):
                                                         dense_u, dense_v) + MATCH_SLACK:
                     outline = (u, v, region.member.mean_sigma(fit))
                     region.key_mismatch = edges
-        chosen, model, reason = _choose(affine, outline)
+        strong = region.texture is not None and min(region.texture.gradient_rms) >= MIN_TEXTURE_GRADIENT
+        chosen, model, reason = _choose(affine, outline, strong)
         self._count(model, reason)
         if self._chaining and model == "outline":
             region.model, region.theta, region.key_along = "outline", fit.params, along
