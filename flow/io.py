@@ -100,7 +100,7 @@ def check_fps(fps: float | None, name: str = "--fps") -> None:
     if fps is None:
         return
     if not (math.isfinite(fps) and fps > 0):
-        raise InputError(f"{name} {fps} is not positive: pass the camera frame rate in frames per second")
+        raise InputError(f"{name} {fps} is not a finite positive number: pass the camera frame rate in frames per second")
     if not FPS_RANGE[0] <= fps <= FPS_RANGE[1]:
         raise InputError(f"{name} {fps:g} is no camera's frame rate ({FPS_RANGE[0]:g} to {FPS_RANGE[1]:g} frames "
                          "per second): pass the camera frame rate in frames per second")

@@ -51,7 +51,7 @@ def cmd_gui(args: argparse.Namespace) -> int:
     if args.port is not None and not 0 <= args.port <= 65535:
         raise InputError(f"--port {args.port} is not a port number (0-65535)")
     if args.fps is not None and not args.fps > 0:
-        raise InputError(f"--fps {args.fps} is not positive: pass the camera frame rate in frames per second")
+        raise InputError(f"--fps {args.fps} is not a finite positive number: pass the camera frame rate in frames per second")
     out_dir = Path(args.out_dir) if args.out_dir else default_out_dir(args.input)
     server = make_server(args.input, out_dir, port=args.port, fps=args.fps, calibration=args.calibration)
     url = f"http://127.0.0.1:{server.server_address[1]}/"

@@ -88,8 +88,10 @@ WARM_RATIO = 1.3
 # An outline tracked from its previous frame that moved more than this (px, the POIs' mean)
 # since then is measured in full: the outline fit finds each edge within a few pixels of its
 # start, and a member swinging tens of pixels (motion-blurred, jittering) lost its edges in
-# tracked frames (2 px RMS on a +-35 px swing where full measurements read 0.2 px).
-MAX_WARM_STEP_PX = 1.5
+# tracked frames (2 px RMS on a +-35 px swing where full measurements read 0.2 px). At 1.5 px
+# the bench's lowtex-wide bar (4.5 px at a few Hz) was measured in full in 46 frames of 180
+# instead of 14, for no gain.
+MAX_WARM_STEP_PX = 3.0
 
 
 # The edge refinement is kept when the POIs' mean photometric mismatch under it is at most
@@ -127,6 +129,20 @@ TEXTURE_ENOUGH_PX = 0.012
 # bars 0.23-0.67; textured panel, whole view, bolted plate, slab, girder 1.5-7.7; the shaded
 # column 4.1 across and 0.2 along.
 MIN_TEXTURE_GRADIENT = 1.0
+# The outline model assumes a background that stands still behind the member. In a full
+# measurement the dense flow is read on the member side of every outline and beyond it, at
+# BACKGROUND_OFFSET_PX plus BACKGROUND_DRAG times the member's motion (the dense flow's
+# smoothing drags a fast member's motion into the background in proportion): where the member
+# moves by more than STATIC_MIN_MOTION_PX, the background's median motion must stay within
+# STATIC_RATIO of the member's (plus STATIC_SLACK_PX), or the outline is not a member's edge
+# against a still background (a texture seam, a whole moving view) or not one the dense flow
+# can tell from it (a round column's dark side against a wall: the outline read 0.13 px RMS
+# there, the dense flow 0.04).
+BACKGROUND_OFFSET_PX = 6
+BACKGROUND_DRAG = 0.5
+STATIC_MIN_MOTION_PX = 0.5
+STATIC_RATIO = 0.3
+STATIC_SLACK_PX = 0.1
 # The readings a region can take, in the sidecar's counts (``<model>_readings``).
 MODELS = ("outline", "affine", "dense")
 
@@ -140,9 +156,9 @@ def _choose(affine: tuple | None, outline: tuple | None, strong: bool) -> tuple[
     if outline is not None:
         why = "no texture to fit" if affine is None else "the texture is too faint to fix the motion"
         return outline, "outline", why
-    if affine is not None:
-        return affine, "affine", "no outline fit; the texture is faint"
-    return None, "dense", "neither the texture nor an outline could be fitted"
+    if affine is not None and strong:
+        return affine, "affine", "no outline fit; the texture is strong but imprecise"
+    return None, "dense", "neither a strong texture nor an outline against a still background"
 
 
 @dataclasses.dataclass
@@ -159,12 +175,12 @@ class _Region:
     ref_level: float  # the reference's median grey at the POIs
     model: str | None = None  # what the chain's key chose ("outline", "affine"; None: measure in full)
     theta: np.ndarray | None = None  # the outline's motion of the chain's last frame
-    theta_before: np.ndarray | None = None  # and of the frame before it
     key_mismatch: float = float("nan")  # the POIs' mismatch at the chain's last full measurement
     key_along: np.ndarray | None = None  # the along-member motion the chain's key took from elsewhere
     affine: np.ndarray | None = None  # the texture's affine motion of the chain's last frame
     affine_before: np.ndarray | None = None  # and of the frame before it
     key_residual: float = float("nan")  # the texture fit's residual at the chain's key
+    static_known: bool = False  # the chain's key saw the background stand still while the member moved
 
     @classmethod
     def of(cls, reference: np.ndarray, mask: np.ndarray, label: int, *, member: bool,
@@ -186,7 +202,7 @@ class _Region:
 
     def restart(self) -> None:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
-        self.theta_before = None
+        self.static_known = False
         self.affine, self.affine_before, self.key_residual = None, None, float("nan")
 
     def motion(self, reference: np.ndarray, current: np.ndarray, fit: MemberFit,
@@ -229,6 +245,28 @@ class _Region:
         return u, v, found.sigma_px
 
 
+def _background_static(flow: np.ndarray, region: _Region) -> bool | None:
+    """Whether the dense ``flow`` shows the background beyond the region's outline standing
+    still while the member moves (None where the member's motion is too small to tell)."""
+    member = region.member
+    height, width = flow.shape[:2]
+    inside = flow[region.prior_rows, region.prior_cols].astype(np.float64)
+    inside = inside[np.all(np.isfinite(inside), axis=1)]
+    if inside.shape[0] < 3:
+        return None
+    moved = float(np.hypot(*np.median(inside, axis=0)))
+    if moved < STATIC_MIN_MOTION_PX:
+        return None
+    offset = (BACKGROUND_OFFSET_PX + BACKGROUND_DRAG * moved) * member.side
+    out_x = np.clip(np.rint(np.where(member.vertical, member.px, member.px + offset)), 0, width - 1)
+    out_y = np.clip(np.rint(np.where(member.vertical, member.py + offset, member.py)), 0, height - 1)
+    outside = flow[out_y.astype(np.intp), out_x.astype(np.intp)].astype(np.float64)
+    outside = outside[np.all(np.isfinite(outside), axis=1)]
+    if outside.shape[0] < 3:
+        return None
+    return float(np.hypot(*np.median(outside, axis=0))) <= STATIC_RATIO * moved + STATIC_SLACK_PX
+
+
 def _in_band(value: float, key: float) -> bool:
     """A tracked frame's mismatch (or residual) within its chain key's band."""
     return key / WARM_RATIO - MATCH_SLACK <= value <= key * WARM_RATIO + MATCH_SLACK
@@ -249,10 +287,11 @@ class DeepFlow(DenseMethod):
       still; it needs a straight-edged member in front of a static background and nothing
       inside the mask.
 
-    A region takes the outline only where the texture does not refute it (:func:`_choose`):
-    where both were fitted, their means must agree within their uncertainties, and the more
-    precise one is taken; where the texture is too weak to fit, the outline (if its fit
-    matches the POIs no worse than the dense flow); where neither fits, the dense flow.
+    Each region takes (:func:`_choose`) its texture where the texture is strong
+    (:data:`MIN_TEXTURE_GRADIENT`) and fixes the motion (:data:`TEXTURE_ENOUGH_PX`); else
+    its outline, where the dense flow shows the background beyond it standing still while
+    the member moves (:func:`_background_static`) and the outline matches the POIs no worse
+    than the dense flow; else a strong texture however imprecise; else the dense flow.
     Through a video the driver hands the frames over in chains (see ``warm``): a chain's
     first frame is measured so, and the rest track each region with the model its key chose,
     from the previous frames' motion, while their photometric mismatch stays in the chain's
@@ -422,7 +461,12 @@ class DeepFlow(DenseMethod):
             else:
                 texture = None
         outline, fit, along = None, None, None
-        if region.member is not None:
+        static = None if region.member is None else _background_static(flow, region)
+        region.static_known = static is not None
+        if static is False:
+            self.reasons["the background beyond the outline moves with the member"] = \
+                self.reasons.get("the background beyond the outline moves with the member", 0) + 1
+        elif region.member is not None:
             prior = flow[region.prior_rows, region.prior_cols].astype(np.float64)
             fit = region.member.fit(current, prior, gain=region.gain(current))
             if fit.ok:
@@ -457,9 +501,7 @@ class DeepFlow(DenseMethod):
             self._count("affine")
             return region.texture_reading(found)
         member = region.member
-        # The motion goes on as it went (a member swinging tens of px moves a few px a frame).
-        theta = region.theta if region.theta_before is None else 2.0 * region.theta - region.theta_before
-        prior = np.column_stack(member.field.uv(theta))
+        prior = np.column_stack(member.field.uv(region.theta))
         fit = member.fit(current, prior, gain=region.gain(current))
         if not fit.ok:
             return None
@@ -469,7 +511,11 @@ class DeepFlow(DenseMethod):
         step = float(np.hypot(np.mean(now_u - before_u), np.mean(now_v - before_v)))
         if not (_in_band(edges, region.key_mismatch) and step <= MAX_WARM_STEP_PX):
             return None
-        region.theta_before, region.theta = region.theta, fit.params
+        # A key too still to show its background standing still: measured in full (and checked)
+        # once the member has moved far enough to tell.
+        if not region.static_known and float(np.hypot(np.mean(now_u), np.mean(now_v))) >= STATIC_MIN_MOTION_PX:
+            return None
+        region.theta = fit.params
         self._count("outline")
         return u, v, member.mean_sigma(fit)
 

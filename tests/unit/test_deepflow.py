@@ -237,7 +237,7 @@ def test_member_motion_takes_the_along_member_motion_that_matches_the_pois():
     better (a wrong along-member motion given is refused)."""
     reference, (current,), poi = bar_frames([3.0], bar_std=12.0)
     reference, current = reference.astype(np.float32), current.astype(np.float32)
-    region = deepflow_module._Region.of(reference, poi, 1)
+    region = deepflow_module._Region.of(reference, poi, 1, member=True, texture=False)
     prior = np.tile([3.0, 0.0], (len(region.prior_rows), 1))
     fit = region.member.fit(current, prior)
     assert fit.ok
