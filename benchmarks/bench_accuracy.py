@@ -1,6 +1,6 @@
 """Accuracy of every registered method with its defaults, on data this project did not make.
 
-For each clip of ``../shared/bench/clips`` (independent clips with exact truth, see their
+For each clip of ``../shared/bench/clips`` and ``../shared/bench/gen`` (independent clips with exact truth, see their
 README) each method runs as a user runs it, ``refflow track CLIP --mask MASK --mm-per-px 1
 --out ...`` and nothing else, and the bench's own scorer (``score.py``) grades the CSV. The
 table adds what the scorer does not: the share of frames (outside the occlusion) whose error
@@ -197,16 +197,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", help="write the numbers as JSON here")
     args = parser.parse_args(argv)
     methods = args.methods.split(",") if args.methods else registry.available()
-    clips_dir = BENCH / "clips"
-    if not clips_dir.is_dir():
-        print(f"no bench clips at {clips_dir}", file=sys.stderr)
+    # The painted bars of clips/ and the other scene kinds of gen/ (textured panel, whole moving
+    # view, shaded column, bolted plate, rotating slab, tiny and large motion).
+    folders = {p.name: p for sub in ("clips", "gen") if (BENCH / sub).is_dir()
+               for p in sorted((BENCH / sub).iterdir()) if (p / "clip.json").is_file()}
+    if not folders:
+        print(f"no bench clips under {BENCH}", file=sys.stderr)
         return 2
-    clips = args.clips.split(",") if args.clips else sorted(p.name for p in clips_dir.iterdir() if p.is_dir())
+    clips = args.clips.split(",") if args.clips else list(folders)
     results: dict[str, dict] = {}
     floors: dict[str, tuple[float, float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for clip in clips:
-            folder = clips_dir / clip
+            folder = folders[clip]
             _, meta, mask = read_clip(folder)
             floors[clip] = cramer_rao(folder, meta, mask)
             results[clip] = {}
