@@ -49,10 +49,10 @@ cv2.fillPoly(labels, [np.array([[245, 86], [330, 76], [330, 96], [245, 104]], np
 if not cv2.imwrite(sys.argv[1], labels):
     sys.exit(f"cannot write {sys.argv[1]}")
 EOF
-# With the defaults deepflow flags the near curb's three pieces (on a piece its edge fit is
-# refused and the dense flow of this film is uncertain by 1-2 px, above the 0.35 px limit,
-# so every frame of them is valid=0, with a warning); the figure shows the readings kept
-# anyway (`refflow merge --max-typical-sigma 0` of the same run), as its title says.
+# With the defaults deepflow measures the near curb's pieces with the dense flow (their
+# outline's background does not stand still: refused) and flags a region only where its
+# typical uncertainty is above 0.35 px and 0.03 of its motion's range; the figure shows
+# every reading kept (`refflow merge --max-typical-sigma 0` of the same run), as its title says.
 "$refflow" track "$clip" --mask "$data/regions.png" --roi 0,60,334,165 --grid-step 4 --jobs 2 \
     --out "$data/regions.csv" --raw-tracks "$data/regions.npz" --no-progress
 "$refflow" merge "$data/regions.npz" --max-typical-sigma 0 --out "$data/regions_kept.csv"

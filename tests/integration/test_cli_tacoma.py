@@ -122,17 +122,19 @@ def test_tacoma_script_writes_the_figures(tmp_path) -> None:
     assert (tmp_path / "tacoma_displacement.png").is_file() and (tmp_path / "tacoma_pois.png").is_file()
     f_dense, f_klt = dominant(result.stdout, "deepflow", "dy"), dominant(result.stdout, "klt", "dy")
     assert BAND_HZ[0] < f_dense < BAND_HZ[1] and abs(f_dense - f_klt) < 0.03, result.stdout
-    # The deck at four places in one run. With the defaults deepflow's typical uncertainty on
-    # the near curb's pieces (regions 1-3) is 1-2 px, above the 0.35 px limit and above 0.03 of
-    # their motion's range (0.033-0.083): every frame of such a region is flagged, with a
-    # warning naming it, and only such regions, each frame keeping its reading; the far deck
-    # edge (region 4, 0.24 px) is measured. Kept anyway (merge --max-typical-sigma 0, what the
-    # figure shows), the four swing at the deck's frequency, the far edge against the near one.
+    # The deck at four places in one run. A region is flagged exactly where its typical
+    # uncertainty is above the 0.35 px limit and above 0.03 of its motion's range, with a warning
+    # naming it, each frame keeping its reading. Since the default refuses an outline whose
+    # background does not stand still (issue 30), the near curb's pieces (regions 1-3) take the
+    # dense flow (typical 0.12-0.19 px: none flagged; their dy agrees with DIS's to 1.7-2.8 px
+    # RMS, correlation 0.94-0.99, where the refused outline fits read 1-2 px uncertain and
+    # 2.7-6.2 px from DIS); the far deck edge (region 4) is measured. Kept anyway (merge
+    # --max-typical-sigma 0, what the figure shows), the four swing at the deck's frequency.
     assert (tmp_path / "tacoma_regions.png").is_file() and (tmp_path / "tacoma_regions_pois.png").is_file()
     defaults = read_measurements(tmp_path / "data" / "regions.csv")
     sidecar = json.loads((tmp_path / "data" / "regions.json").read_text())
     unresolved = sidecar["quality"].get("unresolved_regions", [])
-    assert 4 not in unresolved and len(unresolved) >= 1, sidecar["quality"]
+    assert 4 not in unresolved, sidecar["quality"]
     for region, entry in zip(defaults, sidecar["regions"], strict=True):
         flagged = region["region"] in unresolved
         assert entry["unresolved"] == flagged
@@ -141,8 +143,8 @@ def test_tacoma_script_writes_the_figures(tmp_path) -> None:
         if flagged:  # the readers leave flagged frames out; the file keeps their readings
             assert not np.isfinite(region["dy_px"]).any() and np.isfinite(region["flagged"]["dy_px"]).all()
             assert f"region {region['region']}: the typical frame's standard uncertainty" in result.stderr
-        else:
-            assert np.isfinite(region["dy_px"]).mean() > 0.9
+        else:  # frames flagged one by one (film damage, the frame's edge): region 1 has 32 of 248
+            assert np.isfinite(region["dy_px"]).mean() > 0.8
     regions = read_measurements(tmp_path / "data" / "regions_kept.csv")
     assert [r["region"] for r in regions] == [1, 2, 3, 4]
     for label in (1, 2, 3, 4):

@@ -67,7 +67,7 @@ def test_frame_ranges_and_fps_checks(tmp_path) -> None:
         FrameSource(tmp_path)
     assert [f[1] for f in FrameSource(tmp_path, require_fps=False)] == [0, 1, 2, 3, 4]
     for bad in (0.0, -5.0, float("nan")):
-        with pytest.raises(InputError, match="is not positive"):
+        with pytest.raises(InputError, match="is not a finite positive number"):
             FrameSource(tmp_path, fps=bad)
 
 
@@ -77,7 +77,7 @@ def test_video_fps_is_checked_too_and_ranges_skip_decoding(tmp_path) -> None:
     for i in range(6):
         writer.write(np.full((12, 16, 3), 40 * i, np.uint8))
     writer.release()
-    with pytest.raises(InputError, match="--fps -1.0 is not positive"):
+    with pytest.raises(InputError, match="--fps -1.0 is not a finite positive number"):
         FrameSource(video, fps=-1.0)
     source = FrameSource(video)
     picked = list(source.frames(2, 5))
