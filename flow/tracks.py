@@ -13,7 +13,9 @@ import numpy as np
 from flow.filtering import FilterResult
 
 # Counters a chaining method keeps (see flow.driver.track_dense), reported with the timings.
-CHAIN_COUNTS = ("full_frames", "warm_frames", "outline_readings", "affine_readings", "dense_readings")
+CHAIN_COUNTS = ("full_frames", "warm_frames", "outline_readings", "affine_readings", "dense_readings",
+                "why_texture_fixes_motion", "why_outline_no_texture", "why_outline_texture_imprecise",
+                "why_texture_no_outline", "why_dense_only", "why_outline_background_moves")
 
 
 class ColumnView:

@@ -147,18 +147,31 @@ STATIC_SLACK_PX = 0.1
 MODELS = ("outline", "affine", "dense")
 
 
+# Why a full measurement took its model: the sidecar's timings count each (``why_<reason>``,
+# a region in a frame), beside the readings of each model and the outlines refused because
+# the background beyond them moved with the member (``why_outline_background_moves``).
+REASONS = {
+    "texture_fixes_motion": "the texture is strong and fixes the motion on both axes",
+    "outline_no_texture": "the outline; no strong texture fit",
+    "outline_texture_imprecise": "the outline; the strong texture fit is not precise enough",
+    "texture_no_outline": "the strong texture however imprecise; no outline against a still background",
+    "dense_only": "the dense flow; neither a strong texture nor an outline against a still background",
+    "outline_background_moves": "an outline refused: the background beyond it moves with the member",
+}
+
+
 def _choose(affine: tuple | None, outline: tuple | None, strong: bool) -> tuple[tuple | None, str, str]:
     """The reading a region takes from its affine texture fit and its outline fit (each
     ``(u, v, (sigma_x, sigma_y))`` or None; ``strong``: the region's texture is strong enough
-    to be trusted over an outline), the model's name and why."""
-    if affine is not None and strong and max(affine[2]) <= TEXTURE_ENOUGH_PX:
-        return affine, "affine", "the texture fixes the motion on both axes"
+    to be trusted over an outline), the model's name and why (a key of :data:`REASONS`)."""
+    affine = affine if strong else None
+    if affine is not None and max(affine[2]) <= TEXTURE_ENOUGH_PX:
+        return affine, "affine", "texture_fixes_motion"
     if outline is not None:
-        why = "no texture to fit" if affine is None else "the texture is too faint to fix the motion"
-        return outline, "outline", why
-    if affine is not None and strong:
-        return affine, "affine", "no outline fit; the texture is strong but imprecise"
-    return None, "dense", "neither a strong texture nor an outline against a still background"
+        return outline, "outline", "outline_no_texture" if affine is None else "outline_texture_imprecise"
+    if affine is not None:
+        return affine, "affine", "texture_no_outline"
+    return None, "dense", "dense_only"
 
 
 @dataclasses.dataclass
@@ -357,7 +370,8 @@ class DeepFlow(DenseMethod):
         self.outline_readings = 0
         self.affine_readings = 0
         self.dense_readings = 0
-        self.reasons: dict[str, int] = {}
+        for reason in REASONS:
+            setattr(self, f"why_{reason}", 0)
         # Scratch reused from frame to frame: an instance serves one thread at a time.
         self._workspace = Workspace()
         self._regions: list[_Region] = []  # one per region of the mask (see bind)
@@ -440,10 +454,11 @@ class DeepFlow(DenseMethod):
                 flow[region.rows, region.cols, 1] = v
         return flow
 
-    def _count(self, model: str, reason: str | None = None) -> None:
-        setattr(self, f"{model}_readings", getattr(self, f"{model}_readings") + 1)
+    def _count(self, model: str | None, reason: str | None = None) -> None:
+        if model is not None:
+            setattr(self, f"{model}_readings", getattr(self, f"{model}_readings") + 1)
         if reason is not None:
-            self.reasons[reason] = self.reasons.get(reason, 0) + 1
+            setattr(self, f"why_{reason}", getattr(self, f"why_{reason}") + 1)
 
     def _full(self, reference: np.ndarray, current: np.ndarray, flow: np.ndarray,
               region: _Region) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
@@ -464,8 +479,7 @@ class DeepFlow(DenseMethod):
         static = None if region.member is None else _background_static(flow, region)
         region.static_known = static is not None
         if static is False:
-            self.reasons["the background beyond the outline moves with the member"] = \
-                self.reasons.get("the background beyond the outline moves with the member", 0) + 1
+            self._count(None, "outline_background_moves")
         elif region.member is not None:
             prior = flow[region.prior_rows, region.prior_cols].astype(np.float64)
             fit = region.member.fit(current, prior, gain=region.gain(current))

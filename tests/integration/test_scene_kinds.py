@@ -11,6 +11,7 @@ truth of a frame is the mean true displacement of the mask's pixels. What a user
 from __future__ import annotations
 
 import csv
+import json
 import sys
 from pathlib import Path
 
@@ -128,7 +129,7 @@ def _scene(kind: str, seed: int) -> Clip:
     return Clip(np.array(frames), mask, np.array(truth), axis, FPS, np.zeros(FRAMES, bool))
 
 
-def _run(tmp_path: Path, clip: Clip, video: Path, name: str, *extra: str) -> tuple[float, float, float]:
+def _run(tmp_path: Path, clip: Clip, video: Path, name: str, *extra: str) -> tuple[float, float, float, dict]:
     mask = tmp_path / "mask.png"
     cv2.imwrite(str(mask), clip.mask.astype(np.uint8) * 255)
     out = tmp_path / f"{name}.csv"
@@ -142,7 +143,8 @@ def _run(tmp_path: Path, clip: Clip, video: Path, name: str, *extra: str) -> tup
     use = np.isfinite(measured)
     slope = float(np.polyfit(true[use], measured[use], 1)[0])
     rmse = float(np.sqrt(np.mean((measured[use] - true[use]) ** 2)))
-    return rmse, slope, float(np.mean(valid & use))
+    timings = json.loads(out.with_suffix(".json").read_text())["timings"]
+    return rmse, slope, float(np.mean(valid & use)), timings
 
 
 # The default must not lose to a plain baseline on any kind (within 10 %, or a floor of a few
@@ -173,5 +175,12 @@ def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) 
     else:
         assert abs(ours[1] - 1.0) <= 0.015
     assert ours[2] >= 0.95
+    # The sidecar says what each reading was taken from, and why each full measurement chose it.
+    timings = ours[3]
+    assert sum(timings[f"{m}_readings"] for m in ("outline", "affine", "dense")) == FRAMES
+    choices = [k for k in timings if k.startswith("why_") and k != "why_outline_background_moves"]
+    assert sum(timings[k] for k in choices) == timings["full_frames"]
+    if kind in ("panel", "whole-view", "rotation"):  # strong texture: the texture fit
+        assert timings["affine_readings"] >= 0.9 * FRAMES and timings["why_texture_fixes_motion"] >= 1
     # The bound can fail: the same reading 5 % short breaks the slope's.
     assert abs(0.95 * ours[1] - 1.0) > 0.015
