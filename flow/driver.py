@@ -35,7 +35,7 @@ from flow.filtering import reference_offset
 from flow.io import FrameSource, InputError
 from flow.photometric import LucasKanadeSigma, mean_abs, photometric_residual, sample
 from flow.storage import PoiStore
-from flow.tracks import CHAIN_COUNTS, Tracks
+from flow.tracks import Tracks
 
 Undistort = Callable[[np.ndarray], np.ndarray] | None
 
@@ -177,10 +177,11 @@ class _MethodPool:
             self._idle.put(method)
 
     def chain_counts(self) -> dict[str, float]:
-        """Where the time went, for a method that tracks frames from their predecessor: frames it
-        measured in full and frames it tracked (warm-up frames of a part included)."""
-        return {key: float(sum(getattr(m, key) for m in self.methods))
-                for key in CHAIN_COUNTS if hasattr(self.methods[0], key)}
+        """Where the time went, for a method that keeps ``counts`` (a dict: frames it measured in
+        full and frames it tracked, ...; warm-up frames of a part included), summed over the
+        instances."""
+        counts = [getattr(m, "counts", None) or {} for m in self.methods]
+        return {key: float(sum(c.get(key, 0) for c in counts)) for key in counts[0]}
 
 
 class _FrameResult(NamedTuple):

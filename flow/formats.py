@@ -17,7 +17,7 @@ import numpy as np
 from flow.filtering import block_rows
 from flow.io import InputError
 from flow.storage import PoiStore, write_npz
-from flow.tracks import CHAIN_COUNTS, Measurement, Tracks
+from flow.tracks import NOT_ADDITIVE_TIMINGS, Measurement, Tracks
 
 
 def iter_rows(result: Measurement, mm_per_px: float) -> Iterable[dict[str, Any]]:
@@ -151,8 +151,9 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
                                                    if "camera_dx_px" in first.small else ()) \
         + (("sigma_dx_px", "sigma_dy_px") if all("sigma_dx_px" in p.small for p in parts) else ())
     concat = {key: np.concatenate([p.small[key] for p in parts]) for key in per_frame}
+    additive = [key for key in first.meta.get("timings", {}) if key not in NOT_ADDITIVE_TIMINGS]
     timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts)
-               for key in ("setup_s", "frames_s") + tuple(k for k in CHAIN_COUNTS if k in first.meta.get("timings", {}))}
+               for key in dict.fromkeys(["setup_s", "frames_s", *additive])}
     timings["frames_per_s"] = len(concat["frame"]) / max(timings["frames_s"], 1e-9)
     tracks = Tracks(frame=concat["frame"], time_s=concat["time_s"], dx=dx, dy=dy, residual=concat["residual"],
                     x_px=first.small["x_px"], y_px=first.small["y_px"], reference_frame=reference_frame,

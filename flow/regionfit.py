@@ -17,8 +17,9 @@ criterion: gain and offset fall out).
 * Robustness: iteratively re-weighted (Tukey's biweight on the residual, scaled by its median
   absolute deviation), so that pixels near the mask's edge that see the background, a glint
   or a passing object drop out.
-* Uncertainty: the Gauss-Newton covariance, scaled by the residual variance and by the design
-  effect of neighbouring pixels' correlated residuals (a codec block, interpolation, blur).
+* Uncertainty: the clustered (sandwich) covariance over blocks of a codec's macroblock size,
+  and no less than the scatter of the translations of strips of the region; neither sees an
+  error common to the whole region (a codec's quantised motion), which stays open.
 
 The fit needs a starting warp within the basin of the criterion (a pixel or two for fine
 texture, more for coarse): the dense flow's affine least-squares fit over the region, or the
@@ -132,12 +133,18 @@ class RegionFit:
         step = int(np.ceil(rows.size / MAX_POINTS))
         rows, cols = rows[::step], cols[::step]
         self.rows, self.cols = rows, cols
-        ref = reference.astype(np.float64)
-        fx = ndimage.correlate1d(ref, _DERIVATIVE, axis=1, mode="nearest")[rows, cols]
-        fy = ndimage.correlate1d(ref, _DERIVATIVE, axis=0, mode="nearest")[rows, cols]
+        # Filters run on the region's bounding box plus their reach, not on the whole frame.
+        height, width = reference.shape
+        pad = 8
+        r0, c0 = max(int(rows.min()) - pad, 0), max(int(cols.min()) - pad, 0)
+        r1, c1 = min(int(rows.max()) + pad + 1, height), min(int(cols.max()) + pad + 1, width)
+        ref = reference[r0:r1, c0:c1].astype(np.float64)
+        local_rows, local_cols = rows - r0, cols - c0
+        fx = ndimage.correlate1d(ref, _DERIVATIVE, axis=1, mode="nearest")[local_rows, local_cols]
+        fy = ndimage.correlate1d(ref, _DERIVATIVE, axis=0, mode="nearest")[local_rows, local_cols]
         self._dx = (cols - self.x0) / self.scale
         self._dy = (rows - self.y0) / self.scale
-        f = ref[rows, cols]
+        f = ref[local_rows, local_cols]
         self._f = f - f.mean()
         self._f_norm = float(np.sqrt(np.sum(self._f ** 2)))
         self._jacobian = np.column_stack([fx, fx * self._dx, fx * self._dy, fy, fy * self._dx, fy * self._dy])
@@ -154,7 +161,8 @@ class RegionFit:
         # smoothed over a pixel, so that sensor noise does not count), along x and y.
         smooth = ndimage.gaussian_filter(ref, 1.0)
         self.gradient_rms = tuple(
-            float(np.sqrt(np.mean(ndimage.correlate1d(smooth, _DERIVATIVE, axis=axis, mode="nearest")[rows, cols] ** 2)))
+            float(np.sqrt(np.mean(ndimage.correlate1d(smooth, _DERIVATIVE, axis=axis, mode="nearest")
+                                  [local_rows, local_cols] ** 2)))
             for axis in (1, 0))
 
     def field(self, params: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

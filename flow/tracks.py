@@ -12,10 +12,9 @@ import numpy as np
 
 from flow.filtering import FilterResult
 
-# Counters a chaining method keeps (see flow.driver.track_dense), reported with the timings.
-CHAIN_COUNTS = ("full_frames", "warm_frames", "outline_readings", "affine_readings", "dense_readings",
-                "why_texture_fixes_motion", "why_outline_no_texture", "why_outline_texture_imprecise",
-                "why_texture_no_outline", "why_dense_only", "why_outline_background_moves")
+# The sidecar's timings that are no sums over a run's frames: a merge of parts recomputes the
+# rate and writes its own total; every other entry (seconds, a method's counts) adds up.
+NOT_ADDITIVE_TIMINGS = ("frames_per_s", "total_s")
 
 
 class ColumnView:

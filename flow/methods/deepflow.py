@@ -143,9 +143,6 @@ BACKGROUND_DRAG = 0.5
 STATIC_MIN_MOTION_PX = 0.5
 STATIC_RATIO = 0.3
 STATIC_SLACK_PX = 0.1
-# The readings a region can take, in the sidecar's counts (``<model>_readings``).
-MODELS = ("outline", "affine", "dense")
-
 
 # Why a full measurement took its model: the sidecar's timings count each (``why_<reason>``,
 # a region in a frame), beside the readings of each model and the outlines refused because
@@ -226,10 +223,10 @@ class _Region:
         The outline measures the motion across the member along its long edges; along the
         member it has only the ends of the grown mask, which are no edges where the member
         runs on beyond the mask, and the low-order field extrapolates them over the POIs.
-        Given the POIs' along-member motion from elsewhere (``along``: the dense flow's in a
-        full measurement, the chain key's in a tracked frame), the POIs
-        also try the field's across-member motion with that along-member motion, and take
-        whichever of the two matches them better.
+        Given the POIs' along-member motion from elsewhere (``along``: the dense flow's in
+        a full measurement, the chain key's in a tracked frame), the POIs also try the
+        field's across-member motion with that along-member motion, and take whichever of
+        the two matches them better.
         """
         u, v = self.member.displacement(fit)
         best = (u, v, _mismatch(reference, current, self.cols, self.rows, u, v), None)
@@ -363,15 +360,11 @@ class DeepFlow(DenseMethod):
         self.chain_length = 0
         self._chaining = False
         self._warm_flow: np.ndarray | None = None
-        # Frames measured in full and tracked from their predecessor (see CHAIN_LENGTH), and
-        # the regions' readings by model.
-        self.full_frames = 0
-        self.warm_frames = 0
-        self.outline_readings = 0
-        self.affine_readings = 0
-        self.dense_readings = 0
-        for reason in REASONS:
-            setattr(self, f"why_{reason}", 0)
+        # Frames measured in full and tracked from their predecessor (see CHAIN_LENGTH), the
+        # regions' readings by model and why each full measurement chose its model: the driver
+        # sums every instance's counts into the sidecar's timings.
+        self.counts = dict.fromkeys(("full_frames", "warm_frames", "outline_readings", "affine_readings",
+                                     "dense_readings", *(f"why_{reason}" for reason in REASONS)), 0)
         # Scratch reused from frame to frame: an instance serves one thread at a time.
         self._workspace = Workspace()
         self._regions: list[_Region] = []  # one per region of the mask (see bind)
@@ -439,12 +432,12 @@ class DeepFlow(DenseMethod):
         tracked = [self._track(reference, current, r) if self._chaining and r.model is not None else None
                    for r in regions]
         if regions and all(t is not None for t in tracked):
-            self.warm_frames += 1
+            self.counts["warm_frames"] += 1
             if self._warm_flow is None or self._warm_flow.shape[:2] != current.shape:
                 self._warm_flow = np.full(current.shape + (2,), np.nan, np.float32)
             flow = self._warm_flow
         else:
-            self.full_frames += 1
+            self.counts["full_frames"] += 1
             flow = self._dense(reference, current)
         for region, warm in zip(regions, tracked, strict=True):
             found = warm if warm is not None else self._full(reference, current, flow, region)
@@ -456,9 +449,9 @@ class DeepFlow(DenseMethod):
 
     def _count(self, model: str | None, reason: str | None = None) -> None:
         if model is not None:
-            setattr(self, f"{model}_readings", getattr(self, f"{model}_readings") + 1)
+            self.counts[f"{model}_readings"] += 1
         if reason is not None:
-            setattr(self, f"why_{reason}", getattr(self, f"why_{reason}") + 1)
+            self.counts[f"why_{reason}"] += 1
 
     def _full(self, reference: np.ndarray, current: np.ndarray, flow: np.ndarray,
               region: _Region) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
