@@ -67,7 +67,8 @@ MAX_TYPICAL_SIGMA_PX = 0.35
 # 0.08-0.11 (farneback 0.51; their readings 0.65-3.3 px RMS off a 4.2 px swing), farneback on
 # the bench's bend and occlusion clips 0.17 / 0.26, the workbench's 0.01 bit-per-pixel clip
 # about 0.08 (estimated: 0.47 px of a swing of about 5 px), and scripts/tacoma.sh's near-curb
-# pieces with deepflow 0.033-0.083 (1-2 px; on one piece the reading jumps by 20-30 px).
+# pieces with deepflow's outline fit 0.033-0.083 (1-2 px; on one piece the reading jumps by
+# 20-30 px; since issue 30 the default refuses that outline and reads 0.12-0.19 px, unflagged).
 MAX_SIGMA_TO_RANGE = 0.03
 # The robust range of the motion: the spread between these percentiles of the readings.
 MOTION_PERCENTILES = (5.0, 95.0)
