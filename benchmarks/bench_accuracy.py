@@ -16,6 +16,16 @@ disparity is the left image's, so the flow from the left image to the right is (
 where the disparity is known; occluded pixels included) gives the dense methods' mean
 end-point error on large displacements.
 
+The DIC Challenge 1.0 Samples 3 (a speckle image shifted 0.0 ... 1.0 px in 0.1 px steps in x and
+y) and 5 (0.0 and 0.1 px with the contrast and noise changed) from ``../shared/data/real`` run
+through the CLI as an image folder (the reference first, ``--fps 1``) with a 400x400 mask in the
+middle of the 512x512 images: RMSE of dx and dy over every frame against the shifts in the file
+names, the largest error, and the 2-sigma coverage.
+
+A method name may carry parameters, ``klt:use_mask=true`` (run as ``--method klt --param
+use_mask=true``); by default every registered method runs, and ``klt`` once more with
+``use_mask=true`` (KLT's features restricted to the mask, the fairest KLT on a textured region).
+
     .venv/bin/python benchmarks/bench_accuracy.py [--methods deepflow,dis] [--clips lowtex-wide]
         [--out results/bench_accuracy.md] [--json results/bench_accuracy.json]
 
@@ -43,6 +53,10 @@ from flow import registry  # noqa: E402
 from flow.member import MemberParams, _grow  # noqa: E402
 
 BENCH = ROOT.parent / "shared" / "bench"
+REAL = ROOT.parent / "shared" / "data" / "real"
+DIC_SAMPLES = {"Sample 3": "dic_challenge1_sample3", "Sample 5": "dic_challenge1_sample5"}
+DIC_MASK_PX = 400
+EXTRA_METHODS = ["klt:use_mask=true"]
 REFFLOW = Path(sys.executable).with_name("refflow")
 
 
@@ -83,9 +97,18 @@ def cramer_rao(folder: Path, meta: dict, mask: np.ndarray) -> tuple[float, float
     return bounds[0], bounds[1]
 
 
+def method_args(spec: str) -> list[str]:
+    """``--method NAME [--param KEY=VALUE ...]`` of ``NAME[:KEY=VALUE,...]``."""
+    name, _, params = spec.partition(":")
+    args = ["--method", name]
+    for pair in filter(None, params.split(",")):
+        args += ["--param", pair]
+    return args
+
+
 def run_method(method: str, folder: Path, meta: dict, out: Path) -> dict:
     video, mask = folder / meta.get("video", "clip.mp4"), folder / meta.get("mask", "mask.png")
-    cmd = [str(REFFLOW), "track", str(video), "--mask", str(mask), "--mm-per-px", "1", "--method", method,
+    cmd = [str(REFFLOW), "track", str(video), "--mask", str(mask), "--mm-per-px", "1", *method_args(method),
            "--out", str(out), "--no-progress"]
     started = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -133,6 +156,44 @@ def coverage(folder: Path, meta: dict, out: Path) -> float:
     return float(np.mean(np.abs(measured[use] - true[use]) < 2 * sigma[use]))
 
 
+def dic_sample(method: str, name: str, tmp: Path) -> dict:
+    """One method on one DIC Challenge sample through the CLI: RMSE and largest error of dx and dy
+    over every frame (the reference included, 0 by construction), 2-sigma coverage."""
+    source = REAL / DIC_SAMPLES[name]
+    truth = {row["file"]: (float(row["u_px"]), float(row["v_px"]))
+             for row in csv.DictReader((source / "truth.csv").open())}
+    reference = next(source.glob("* Reference.tif"))
+    folder = tmp / f"{source.name}-frames"
+    if not folder.is_dir():
+        folder.mkdir()
+        for path in [reference, *sorted(source / f for f in truth)]:
+            (folder / path.name).symlink_to(path)
+    image = cv2.imread(str(reference), cv2.IMREAD_UNCHANGED)
+    mask = np.zeros(image.shape[:2], np.uint8)
+    top, left = (image.shape[0] - DIC_MASK_PX) // 2, (image.shape[1] - DIC_MASK_PX) // 2
+    mask[top:top + DIC_MASK_PX, left:left + DIC_MASK_PX] = 255
+    mask_path = tmp / f"{source.name}-mask.png"
+    cv2.imwrite(str(mask_path), mask)
+    out = tmp / f"{source.name}-{method.replace(':', '_')}.csv"
+    cmd = [str(REFFLOW), "track", str(folder), "--mask", str(mask_path), "--fps", "1", "--mm-per-px", "1",
+           *method_args(method), "--out", str(out), "--no-progress"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
+    rows = list(csv.DictReader(out.open()))
+    true = np.array([(0.0, 0.0)] + [truth[f] for f in sorted(truth)])
+    measured = np.array([(float(r["dx_px"]), float(r["dy_px"])) for r in rows])
+    error = measured - true[: len(rows)]
+    result = {"rmse_px": float(np.sqrt(np.nanmean(error ** 2))), "max_abs_err_px": float(np.nanmax(np.abs(error))),
+              "measured_fraction": float(np.mean(np.isfinite(error).all(axis=1)))}
+    if "sigma_dx_px" in rows[0]:
+        sigma = np.array([(float(r["sigma_dx_px"]), float(r["sigma_dy_px"])) for r in rows])[1:]
+        inside = np.isfinite(sigma) & np.isfinite(error[1:])
+        result["coverage_2sigma"] = float(np.mean(np.abs(error[1:][inside]) < 2 * sigma[inside])) if inside.any() \
+            else float("nan")
+    return result
+
+
 def motorcycle(methods: list[str]) -> dict[str, dict]:
     try:
         from skimage import data
@@ -146,7 +207,7 @@ def motorcycle(methods: list[str]) -> dict[str, dict]:
     known = np.isfinite(disparity)
     out = {}
     for name in methods:
-        if registry.kinds()[name] != "dense":
+        if ":" in name or registry.kinds()[name] != "dense":
             continue
         method = registry.get_method(name)
         started = time.perf_counter()
@@ -161,7 +222,7 @@ def fmt(value: float | None, digits: int = 3) -> str:
     return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
 
 
-def table(results: dict, floors: dict, moto: dict, methods: list[str]) -> str:
+def table(results: dict, floors: dict, moto: dict, methods: list[str], dic: dict | None = None) -> str:
     lines = ["| clip | floor px (interior / with outline) | method | RMSE px | slope | max err px | "
              "measured | 2-sigma coverage | post-recovery bias px | occluded flagged | s/frame |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -185,18 +246,33 @@ def table(results: dict, floors: dict, moto: dict, methods: list[str]) -> str:
     if moto:
         lines += ["", "| Motorcycle (Middlebury 2014) | mean EPE px | s |", "|---|---|---|"]
         lines += [f"| {name} | {fmt(v['epe_px'], 2)} | {fmt(v['s'], 1)} |" for name, v in moto.items()]
+    if dic:
+        lines += ["", "| DIC Challenge (400x400 mask) | method | RMSE px (dx, dy, every frame) | max err px | "
+                  "measured | 2-sigma coverage |", "|---|---|---|---|---|---|"]
+        for sample, per_method in dic.items():
+            best = min((r["rmse_px"] for r in per_method.values() if "rmse_px" in r), default=None)
+            for i, (name, r) in enumerate(per_method.items()):
+                head = sample if i == 0 else ""
+                if "error" in r:
+                    lines.append(f"| {head} | {name} | failed: {r['error']} | | | |")
+                    continue
+                rmse = fmt(r["rmse_px"], 4) + (" **best**" if r["rmse_px"] == best else "")
+                lines.append(f"| {head} | {name} | {rmse} | {fmt(r['max_abs_err_px'], 4)} | "
+                             f"{fmt(r['measured_fraction'], 2)} | {fmt(r.get('coverage_2sigma'), 2)} |")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--methods", help="comma-separated (default: every registered method)")
-    parser.add_argument("--clips", help="comma-separated clip names (default: all)")
+    parser.add_argument("--clips", help="comma-separated clip names (default: all; none: only the DIC samples "
+                        "and Motorcycle)")
     parser.add_argument("--no-motorcycle", action="store_true")
+    parser.add_argument("--no-dic", action="store_true", help="skip the DIC Challenge Samples 3 and 5")
     parser.add_argument("--out", help="write the Markdown table here too")
     parser.add_argument("--json", help="write the numbers as JSON here")
     args = parser.parse_args(argv)
-    methods = args.methods.split(",") if args.methods else registry.available()
+    methods = args.methods.split(",") if args.methods else registry.available() + EXTRA_METHODS
     # The painted bars of clips/ and the other scene kinds of gen/ (textured panel, whole moving
     # view, shaded column, bolted plate, rotating slab, tiny and large motion).
     folders = {p.name: p for sub in ("clips", "gen") if (BENCH / sub).is_dir()
@@ -204,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
     if not folders:
         print(f"no bench clips under {BENCH}", file=sys.stderr)
         return 2
-    clips = args.clips.split(",") if args.clips else list(folders)
+    clips = [] if args.clips == "none" else args.clips.split(",") if args.clips else list(folders)
     results: dict[str, dict] = {}
     floors: dict[str, tuple[float, float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -220,13 +296,15 @@ def main(argv: list[str] | None = None) -> int:
                       f"cov {r['coverage_2sigma']:.2f} {r['s_per_frame']:.3f} s/frame"
                       if "rmse_px" in r and "flagged" not in r else r.get("error") or r["flagged"]),
                       file=sys.stderr, flush=True)
+        dic = {} if args.no_dic or not REAL.is_dir() else {
+            sample: {name: dic_sample(name, sample, Path(tmp)) for name in methods} for sample in DIC_SAMPLES}
     moto = {} if args.no_motorcycle else motorcycle(methods)
-    text = table(results, floors, moto, methods)
+    text = table(results, floors, moto, methods, dic)
     print(text)
     if args.out:
         Path(args.out).write_text(text + "\n")
     if args.json:
-        Path(args.json).write_text(json.dumps({"clips": results, "floors": floors, "motorcycle": moto},
+        Path(args.json).write_text(json.dumps({"clips": results, "floors": floors, "motorcycle": moto, "dic": dic},
                                               indent=1) + "\n")
     return 0
 
