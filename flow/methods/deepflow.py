@@ -461,7 +461,9 @@ class DeepFlow(DenseMethod):
         dense_u = flow[region.rows, region.cols, 0]
         dense_v = flow[region.rows, region.cols, 1]
         affine, texture = None, None
-        if region.texture is not None:
+        # A texture too weak to be trusted is never taken (see _choose): not fitted at all.
+        strong = region.texture is not None and min(region.texture.gradient_rms) >= MIN_TEXTURE_GRADIENT
+        if strong:
             start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
             texture = None if start is None else region.texture.fit(current, start)
             if texture is not None and texture.converged and all(np.isfinite(texture.sigma_px)):
@@ -483,7 +485,6 @@ class DeepFlow(DenseMethod):
                                                         dense_u, dense_v) + MATCH_SLACK:
                     outline = (u, v, region.member.mean_sigma(fit))
                     region.key_mismatch = edges
-        strong = region.texture is not None and min(region.texture.gradient_rms) >= MIN_TEXTURE_GRADIENT
         chosen, model, reason = _choose(affine, outline, strong)
         self._count(model, reason)
         if self._chaining and model == "outline":

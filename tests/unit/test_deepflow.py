@@ -257,3 +257,25 @@ def test_member_motion_takes_the_along_member_motion_that_matches_the_pois():
     # A wrong along-member motion given does not replace a right field.
     u, v, kept, taken = region.motion(reference, current, fit, np.full(len(region.rows), 2.0))
     assert taken is None and kept == own and abs(np.mean(v)) < 0.05
+
+
+def test_a_texture_too_weak_to_be_taken_is_not_fitted(monkeypatch):
+    """The painted bar's faint paint is never taken over its outline (see ``_choose``): its
+    affine correlation is not even tried, on every full measurement (a quarter of their time)."""
+    reference, frames, poi = bar_frames(np.array([1.0, 2.0]), bar_std=1.0)
+    method = deepflow_module.DeepFlow()
+    method.bind(reference, poi)
+    region = method._regions[0]
+    assert region.texture is not None and min(region.texture.gradient_rms) < deepflow_module.MIN_TEXTURE_GRADIENT
+    calls = []
+    monkeypatch.setattr(type(region.texture), "fit", lambda self, *a, **k: calls.append(1))
+    for frame in frames:
+        flow = method.calc(reference, frame)
+        assert np.isfinite(flow[..., 0][poi]).all()
+    assert calls == [] and method.counts["full_frames"] == len(frames)
+    # The same bar with a strong paint is fitted (the check can fail).
+    reference, frames, poi = bar_frames(np.array([1.0]), bar_std=40.0)
+    method = deepflow_module.DeepFlow()
+    method.bind(reference, poi)
+    method.calc(reference, frames[0])
+    assert calls
