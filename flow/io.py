@@ -30,6 +30,9 @@ from flow.imagefiles import because, check_image_file, read_image
 __all__ = ["CAMERA_SUFFIXES", "IMAGE_SUFFIXES", "FrameSource", "InputError", "Roi", "as_uint8", "to_grey"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
+# Images and video codecs that keep what the sensor recorded (WebP may be either: taken as lossy).
+LOSSLESS_IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
+LOSSLESS_FOURCCS = (b"ffv1", b"FFV1", b"HFYU", b"FFVH", b"MPNG", b"png ", b"Y800", b"\0\0\0\0")
 
 
 @dataclass(frozen=True)
@@ -432,6 +435,22 @@ class FrameSource:
                               "time_s = index / --fps")
         if camera.dtype == np.uint16:  # the gain comes from the first frame
             self._keep_depth(camera.read(0), camera.bit_depth, f"{camera.bit_depth}-bit camera data")
+
+    @property
+    def lossless(self) -> bool:
+        """Whether the frames are what the camera recorded: a camera file, an image folder of
+        lossless formats only, a video in a lossless codec (FFV1, HuffYUV, PNG, raw); False for
+        H.264, H.265, MJPEG, JPEG images and every codec not known to be lossless."""
+        if self._camera is not None:
+            return True
+        if self.is_folder:
+            return all(p.suffix.lower() in LOSSLESS_IMAGE_SUFFIXES for p in self._files)
+        capture = cv2.VideoCapture(str(self.path))
+        try:
+            fourcc = int(capture.get(cv2.CAP_PROP_FOURCC)) & 0xFFFFFFFF
+        finally:
+            capture.release()
+        return fourcc.to_bytes(4, "little") in LOSSLESS_FOURCCS
 
     @property
     def size(self) -> tuple[int, int]:

@@ -151,6 +151,7 @@ def track(options: TrackOptions) -> Outcome:
     read_paths = options.input_paths()
     output_names(options.outputs, read_paths)
     setup = _set_up(options, notes, name, sparse)
+    params, method = _for_source(name, params, method, setup.source)
     check_reference(setup.source, options.reference_frame, options.reference_average, setup.labels > 0,
                     setup.undistort)
     tracks = _track_frames(options, setup, method, lambda: build_method(name, params), sparse, jobs, frames, notes)
@@ -167,6 +168,17 @@ def track(options: TrackOptions) -> Outcome:
     results = write_outputs(options.outputs, options.filter, read_paths, tracks, run, notes, setup.scale, started)
     written = [p for p in (options.outputs.raw_tracks, options.outputs.csv) if p]
     return Outcome(name, tracks, results, written)
+
+
+def _for_source(name: str, params: dict[str, Any], method: Any, source: Any) -> tuple[dict[str, Any], Any]:
+    """A method's parameters that depend on the input, resolved from it where the user left them
+    (``bias_correction``: on for lossless frames only, see :attr:`flow.io.FrameSource.lossless`),
+    and the method built with them; the sidecar records the value taken."""
+    declared = {param.name for param in getattr(method, "parameters", ())}
+    if "bias_correction" not in declared or params.get("bias_correction") is not None:
+        return params, method
+    params = {**params, "bias_correction": source.lossless}
+    return params, build_method(name, params)
 
 
 def _method_name(asked: str | None, notes: list[str]) -> str:

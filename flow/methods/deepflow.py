@@ -194,11 +194,11 @@ class _Region:
 
     @classmethod
     def of(cls, reference: np.ndarray, mask: np.ndarray, label: int, *, member: bool,
-           texture: bool) -> _Region:
+           texture: bool, bias_correction: bool = True) -> _Region:
         rows, cols = np.nonzero(mask)
         height, width = reference.shape
         edges = MemberEdges.from_reference(reference, mask) if member else None
-        fit = RegionFit(reference, rows, cols) if texture and rows.size >= 8 else None
+        fit = RegionFit(reference, rows, cols, bias_correction=bias_correction) if texture and rows.size >= 8 else None
         if fit is not None and not fit.textured:
             fit = None
         prior_rows = prior_cols = np.zeros(0, np.intp)
@@ -316,6 +316,12 @@ class DeepFlow(DenseMethod):
         Refine the POIs from the member's edges (default True).
     texture : bool
         Refine each region as one affine correlation subset (default True).
+    bias_correction : bool or None
+        Take the texture fit's own sub-pixel bias, measured on the reference shifted exactly,
+        off its readings (:meth:`flow.regionfit.RegionFit.bias_curve`). None (default): on for
+        frames given as arrays; ``refflow track`` makes it on for lossless input (image folders
+        of TIFF/PNG/BMP/PGM, camera files, FFV1 and other lossless video) and off for a lossy
+        codec's, whose own interpolation the correction does not know.
     warm : bool
         Track each region from frame to frame within a chain of :data:`CHAIN_LENGTH` frames,
         verified by the photometric mismatch (default True; False: every frame measured in
@@ -342,19 +348,25 @@ class DeepFlow(DenseMethod):
         Param("texture", "bool", True, "refine each region as one affine correlation subset",
               optional=True, none_means="the method's default"),
         Param("warm", "bool", True, "track each region frame to frame within a chain"),
+        Param("bias_correction", "bool", None, "take the texture fit's own sub-pixel bias, measured on the "
+              "reference, off its readings", optional=True,
+              none_means="on where the frames are lossless (images, camera files, FFV1), off for a lossy codec"),
         CROP, *declared(MatchParams), *declared(VariationalParams))
 
     def __init__(self, *, preset: str = "default", member: bool | None = None,
                  texture: bool | None = None, crop: bool = True, warm: bool = True,
-                 **params: Any) -> None:
+                 bias_correction: bool | None = None, **params: Any) -> None:
         merged = _resolve(preset, params)
         self._match, self._var = _split(merged)
         for label, value, optional in (("member", member, True), ("texture", texture, True),
-                                       ("warm", warm, False)):
+                                       ("warm", warm, False), ("bias_correction", bias_correction, True)):
             if not (isinstance(value, bool) or (optional and value is None)):
                 raise ValueError(f"{label} must be true or false, got {value!r}")
         self._member_on = self.member_default if member is None else member
         self._texture_on = self.texture_default if texture is None else texture
+        # Frames handed over as arrays are taken as they are (`refflow track` resolves None from
+        # the input: lossless or not, see flow.pipeline).
+        self._bias_on = True if bias_correction is None else bias_correction
         # Frames the driver hands one instance in order (0: each frame on its own); set by bind.
         self._warm_on = warm
         self.chain_length = 0
@@ -370,6 +382,7 @@ class DeepFlow(DenseMethod):
         self._regions: list[_Region] = []  # one per region of the mask (see bind)
         super().__init__(
             preset=preset, member=self._member_on, texture=self._texture_on, crop=crop, warm=warm,
+            bias_correction=bias_correction,
             **dataclasses.asdict(self._match),
             **dataclasses.asdict(self._var)
         )
@@ -392,7 +405,7 @@ class DeepFlow(DenseMethod):
                 self._regions = []
                 return
             self._regions.append(_Region.of(reference, region, int(label), member=self._member_on,
-                                            texture=self._texture_on))
+                                            texture=self._texture_on, bias_correction=self._bias_on))
         if self._warm_on and read is None:
             self.chain_length = CHAIN_LENGTH
 

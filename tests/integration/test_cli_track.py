@@ -895,3 +895,20 @@ def test_two_runs_never_write_one_output_at_once(tmp_path, capsys) -> None:
     assert main(argv) == 0
     assert f"replaced the earlier {out}" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "o.csv", "o.json"]
+
+
+def test_the_bias_correction_follows_the_input_unless_asked(tmp_path) -> None:
+    """The default's texture fit takes its own sub-pixel bias off lossless frames (FFV1) and not
+    off a lossy codec's (MJPEG here, H.264 alike); the sidecar says which; a user's choice wins."""
+    mask = tmp_path / "mask.png"
+    cv2.imwrite(str(mask), np.pad(np.full((30, 100), 255, np.uint8), ((45, 45), (30, 30))))
+    taken = {}
+    for name, fourcc, extra in (("lossless", "FFV1", ()), ("lossy", "MJPG", ()),
+                                ("asked", "MJPG", ("--param", "bias_correction=true"))):
+        video = tmp_path / f"{name}.avi"
+        write_clip(video, fourcc, occlude=False)
+        out = tmp_path / f"{name}.csv"
+        assert main(["track", str(video), "--mask", str(mask), "--max-frames", "4", "--out", str(out),
+                     "--no-progress", *extra]) == 0
+        taken[name] = json.loads(out.with_suffix(".json").read_text())["parameters"]["bias_correction"]
+    assert taken == {"lossless": True, "lossy": False, "asked": True}

@@ -318,3 +318,29 @@ def test_opencv_logs_nothing_once_refflow_quiets_it(tmp_path) -> None:
     debugging = subprocess.run([sys.executable, "-c", script, str(clip)], capture_output=True, text=True,
                                env={**env, "OPENCV_LOG_LEVEL": "INFO"}, timeout=60)
     assert int(debugging.stdout.split()[0]) == cv2.utils.logging.LOG_LEVEL_INFO  # the user's own level is kept
+
+
+def test_lossless_frames_are_told_from_a_lossy_codecs(tmp_path) -> None:
+    """The default takes its texture fit's own sub-pixel bias off only where the frames are what
+    the sensor recorded (see FrameSource.lossless and the pipeline's bias_correction)."""
+    import subprocess
+
+    import imageio_ffmpeg
+
+    def encode(name: str, *codec: str):
+        path = tmp_path / name
+        subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-v", "error", "-y", "-f", "lavfi", "-i",
+                        "testsrc=size=64x48:rate=10", "-t", "0.5", *codec, str(path)], check=True)
+        return FrameSource(path)
+
+    assert encode("a.mkv", "-c:v", "ffv1").lossless
+    assert encode("b.avi", "-c:v", "rawvideo", "-pix_fmt", "gray").lossless
+    assert not encode("c.mp4", "-c:v", "libx264").lossless
+    assert not encode("d.avi", "-c:v", "mjpeg").lossless
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"{i:02d}.png"), np.full((12, 16), 40 * i, np.uint8))
+    assert FrameSource(folder, fps=10).lossless
+    cv2.imwrite(str(folder / "03.jpg"), np.full((12, 16), 200, np.uint8))
+    assert not FrameSource(folder, fps=10).lossless  # one JPEG among them
