@@ -144,9 +144,17 @@ STATIC_MIN_MOTION_PX = 0.5
 STATIC_RATIO = 0.3
 STATIC_SLACK_PX = 0.1
 
+# An outline whose own standard uncertainty exceeds this (px) on both axes cannot resolve a
+# sub-pixel motion by its own account (the tool's limit for a clip's typical uncertainty is
+# 0.35 px): it is not taken, in a full measurement or a tracked frame. A shaded round column
+# (its limb darkens into the wall: no step to fit) read 0.3-1.8 px this way and 0.19 px RMS,
+# 6 % long, where the dense flow read 0.06; the bench's painted bars stay below 0.4.
+OUTLINE_MAX_SIGMA_PX = 0.5
+
 # Why a full measurement took its model: the sidecar's timings count each (``why_<reason>``,
 # a region in a frame), beside the readings of each model and the outlines refused because
-# the background beyond them moved with the member (``why_outline_background_moves``).
+# the background beyond them moved with the member (``why_outline_background_moves``) or
+# because they were too imprecise (``why_outline_imprecise``).
 REASONS = {
     "texture_fixes_motion": "the texture is strong and fixes the motion on both axes",
     "outline_no_texture": "the outline; no strong texture fit",
@@ -154,7 +162,10 @@ REASONS = {
     "texture_no_outline": "the strong texture however imprecise; no outline against a still background",
     "dense_only": "the dense flow; neither a strong texture nor an outline against a still background",
     "outline_background_moves": "an outline refused: the background beyond it moves with the member",
+    "outline_imprecise": "an outline refused: its own uncertainty exceeds OUTLINE_MAX_SIGMA_PX on both axes",
 }
+# The reasons that count a refusal, not the choice a full measurement made.
+REFUSALS = ("outline_background_moves", "outline_imprecise")
 
 
 def _choose(affine: tuple | None, outline: tuple | None, strong: bool) -> tuple[tuple | None, str, str]:
@@ -494,9 +505,12 @@ class DeepFlow(DenseMethod):
             if fit.ok:
                 u, v, edges, along = region.motion(reference, current, fit, region.along(dense_u, dense_v))
                 # The edges must not make the POIs' own match worse than the dense flow's.
-                if edges <= MATCH_TOLERANCE * _mismatch(reference, current, region.cols, region.rows,
-                                                        dense_u, dense_v) + MATCH_SLACK:
-                    outline = (u, v, region.member.mean_sigma(fit))
+                sigma = region.member.mean_sigma(fit)
+                if min(sigma) > OUTLINE_MAX_SIGMA_PX:
+                    self._count(None, "outline_imprecise")
+                elif edges <= MATCH_TOLERANCE * _mismatch(reference, current, region.cols, region.rows,
+                                                          dense_u, dense_v) + MATCH_SLACK:
+                    outline = (u, v, sigma)
                     region.key_mismatch = edges
         chosen, model, reason = _choose(affine, outline, strong)
         self._count(model, reason)
@@ -530,7 +544,9 @@ class DeepFlow(DenseMethod):
         now_u, now_v = member.poi_field.uv(fit.params)
         before_u, before_v = member.poi_field.uv(region.theta)
         step = float(np.hypot(np.mean(now_u - before_u), np.mean(now_v - before_v)))
-        if not (_in_band(edges, region.key_mismatch) and step <= MAX_WARM_STEP_PX):
+        sigma = member.mean_sigma(fit)
+        if not (_in_band(edges, region.key_mismatch) and step <= MAX_WARM_STEP_PX
+                and min(sigma) <= OUTLINE_MAX_SIGMA_PX):
             return None
         # A key too still to show its background standing still: measured in full (and checked)
         # once the member has moved far enough to tell.
@@ -538,7 +554,7 @@ class DeepFlow(DenseMethod):
             return None
         region.theta = fit.params
         self._count("outline")
-        return u, v, member.mean_sigma(fit)
+        return u, v, sigma
 
 
 @register("deepflow-dense")
