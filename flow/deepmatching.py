@@ -120,6 +120,23 @@ def search_radius(params: MatchParams, shape: tuple[int, ...]) -> float:
     return float(params.ngh_rad)
 
 
+def _radius_cells(params: MatchParams, shape: tuple[int, ...]) -> tuple[int, int, int]:
+    """The downscaled image's patch rows and columns and the search radius in its pixels."""
+    ds = int(params.downscale)
+    height, width = shape[0] // ds, shape[1] // ds
+    reach = search_radius(params, shape)
+    radius = reach / ds if reach > 0 else max(height, width)
+    return height // ATOMIC, width // ATOMIC, int(math.ceil(min(radius, max(height, width))))
+
+
+def response_bytes(shape: tuple[int, ...], params: MatchParams) -> int:
+    """Bytes of the response volumes :func:`deep_matching` holds for images of ``shape``: the
+    atomic responses of both directions (patches x (2 radius + 1)^2, float32) and the coarser
+    levels built from them (a third more); the bulk of its memory."""
+    ny, nx, radius = _radius_cells(params, shape)
+    return int(2 * ny * nx * (2 * radius + 1) ** 2 * 4 * 4 // 3)
+
+
 @dataclass
 class MatchGrid:
     """Quasi-dense matches on the atomic-patch grid, in full-resolution pixels.
@@ -638,11 +655,7 @@ def deep_matching(
         )
     f1 = _descriptor_planes(im1, params)
     f2 = _descriptor_planes(im2, params)
-    H, W = im1.shape
-    reach = search_radius(params, reference.shape)
-    radius = reach / ds if reach > 0 else max(H, W)
-    radius = int(math.ceil(min(radius, max(H, W))))
-    ny, nx = H // ATOMIC, W // ATOMIC
+    ny, nx, radius = _radius_cells(params, reference.shape)
     D = 2 * radius + 1
     n1, n2 = _patch_norms(f1), _patch_norms(f2)
     forward = np.zeros((ny, D, D, nx), np.float32)
