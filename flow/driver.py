@@ -440,10 +440,14 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     digest = image_digest(reference)
     area = _work_area(pool.methods[0], reference.shape, mask, background)
     origin = np.zeros(2, poi_xy.dtype)
+    # Without undistortion (which needs the whole frame) the source cuts each frame before
+    # its colour conversion; with it, the undistorted frame is cut.
+    at_source = area if undistort is None and hasattr(source, "cut") else None
     if area is not None:
         origin = np.array([area[1].start, area[0].start], poi_xy.dtype)
         reference, mask, poi_xy = np.ascontiguousarray(reference[area]), mask[area], poi_xy - origin
-        undistort = _cutter(undistort, area)
+        if at_source is None:
+            undistort = _cutter(undistort, area)
     pool.bind(reference, mask, read)
     readout = _PoiReadout(reference, poi_xy, regions, background)
     measure_chain = functools.partial(_measure_chain, pool, readout)
@@ -459,7 +463,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
 
     collected = _Collected(len(poi_xy), store_dir)
     t1 = time.perf_counter()
-    with _progress(source, start, stop, progress) as bar:
+    cut = source.cut(at_source) if at_source is not None else contextlib.nullcontext()
+    with _progress(source, start, stop, progress) as bar, cut:
         chains = _chains(source, start, stop, undistort, reference_frame=reference_frame, chain=pool.chain)
         _run_chains(chains, measure_chain, functools.partial(collected.add, bar=bar), jobs=jobs, chain=pool.chain)
     t2 = time.perf_counter()
