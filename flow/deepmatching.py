@@ -74,7 +74,9 @@ class MatchParams:
     ngh_rad : float or None
         Search radius in full-resolution pixels (0: whole image, slow). None (the
         default) scales it with the image: :data:`REACH` of its longer side, at least
-        :data:`MIN_RADIUS` px, so that a larger view of a moving structure is searched as far.
+        :data:`MIN_RADIUS` px, so that a larger view of a moving structure is searched as far
+        (the ``deepflow`` method bound to a mask instead follows the member's motion, see
+        :data:`flow.methods.deepflow.BASE_REACH_PX`).
     max_patch : int
         Largest patch side in downscaled pixels (4 * 2**levels).
     presmooth_sigma, desc_sigma : float
@@ -96,7 +98,8 @@ class MatchParams:
     downscale: int = field(default=2, metadata=bounds(1, 8, "factor the images are reduced by before matching"))
     ngh_rad: float | None = field(default=None, metadata=bounds(
         0, 10000, "search radius in full-resolution px (0: the whole image, slow)",
-        none_means=f"{REACH:g} of the frame's longer side, at least {MIN_RADIUS:g} px"))
+        none_means=f"deepflow with a mask: from the motion (32 px, widened where the motion passes half "
+                   f"of it); a frame solved whole: {REACH:g} of its longer side, at least {MIN_RADIUS:g} px"))
     max_patch: int = field(default=32, metadata=bounds(8, 512, "largest patch side in downscaled px"))
     presmooth_sigma: float = field(default=1.0, metadata=bounds(0, 10, "Gaussian smoothing before the gradient, px"))
     desc_sigma: float = field(default=1.0, metadata=bounds(0, 10, "Gaussian smoothing of each orientation map, px"))

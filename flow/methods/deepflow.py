@@ -368,10 +368,12 @@ class DeepFlow(DenseMethod):
         verified by the photometric mismatch (default True; False: every frame measured in
         full). With background points to read, every frame is measured in full.
     crop : bool
-        Solve the dense flow only around the pixels that are read (the POIs' and background
-        points' bounding box plus :data:`flow.methods.base.CROP_MARGIN_PX` or the whole frame's
-        search radius, whichever is larger; default True); the flow elsewhere is NaN.
-        Without :meth:`bind` the whole frame is solved.
+        Solve the dense flow only around the pixels that are read (default True): the POIs'
+        and background points' bounding box plus a margin that holds the matching's reach
+        (which follows the member's motion, :data:`BASE_REACH_PX`; or ``ngh_rad``), the
+        pyramid's settling (:data:`flow.methods.base.CROP_MARGIN_PX`) and the member's
+        reference analysis; the flow elsewhere is NaN. Without :meth:`bind` the whole frame is
+        solved, with the frame's reach (:func:`flow.deepmatching.search_radius`).
     downscale, ngh_rad, max_patch, ... : matching parameters
     alpha, beta, delta, gamma, kappa, sigma, eta, n_outer, n_sor, omega, ... :
         variational parameters; ``beta = 0`` switches the matching term (and
