@@ -95,10 +95,8 @@ def _matching_margin(match: MatchParams, shape: tuple[int, ...]) -> int | None:
 
 def _margin(reach: float) -> int:
     """The window's margin around the POIs for a matching of ``reach`` px: room for the
-    matching, for the pyramid and smoothing to settle (CROP_MARGIN_PX) and for the member's
-    reference analysis (:func:`flow.member.context_px`), so that a frame cut to the window
-    (``--roi``) gives the numbers of the whole frame."""
-    return max(CROP_MARGIN_PX, MEMBER_CONTEXT_PX, int(np.ceil(reach)))
+    matching and for the pyramid and smoothing to settle (CROP_MARGIN_PX)."""
+    return max(CROP_MARGIN_PX, int(np.ceil(reach)))
 
 
 def _match_at(match: MatchParams, reach: float | None, window_shape: tuple[int, ...],
@@ -460,9 +458,12 @@ class DeepFlow(DenseMethod):
         return _matching_margin(self._match, shape)
 
     def max_window_margin(self, shape: tuple[int, ...]) -> int | None:
+        # The reach may widen up to MAX_REACH_PX; the member's reference analysis reads
+        # MEMBER_CONTEXT_PX beyond the mask (a frame cut closer would change its numbers).
+        widest = super().max_window_margin(shape)
         if self._crop_on and self._match.ngh_rad is None and self._var.beta > 0:
-            return _margin(MAX_REACH_PX)  # the reach may widen up to there
-        return super().max_window_margin(shape)
+            widest = _margin(MAX_REACH_PX)
+        return None if widest is None else max(widest, MEMBER_CONTEXT_PX)
 
     def warm_up(self) -> None:
         """Compile the kernels before the first frame (see :func:`compile_kernels`)."""
