@@ -100,3 +100,19 @@ def test_the_reach_and_window_follow_the_motion_not_the_frame():
     assert method.last_reach_px == 2 * BASE_REACH_PX and method.counts["reach_widened"] == 1
     assert abs(float(np.median(flow[mask][:, 0])) - 24.0) < 0.1
     assert np.isfinite(flow[..., 0]).sum() < 0.05 * reference.size
+
+
+def test_a_long_reach_is_matched_coarser_to_stay_within_the_memory_budget():
+    """The matching's response volumes grow with the window's area times the reach squared:
+    a reach that would pass MATCH_BUDGET_BYTES is searched at a coarser downscale instead."""
+    from flow.deepmatching import MatchParams, response_bytes
+    from flow.methods.deepflow import MATCH_BUDGET_BYTES, MAX_REACH_PX, _match_at
+
+    window = (300 + 2 * int(MAX_REACH_PX), 500 + 2 * int(MAX_REACH_PX))
+    base = MatchParams()
+    assert response_bytes(window, MatchParams(ngh_rad=MAX_REACH_PX)) > MATCH_BUDGET_BYTES
+    wide = _match_at(base, MAX_REACH_PX, window, (2160, 3840))
+    assert wide.ngh_rad == MAX_REACH_PX and wide.downscale > base.downscale
+    assert response_bytes(window, wide) <= MATCH_BUDGET_BYTES
+    near = _match_at(base, BASE_REACH_PX, (300 + 128, 500 + 128), (2160, 3840))
+    assert near.downscale == base.downscale and near.ngh_rad == BASE_REACH_PX
