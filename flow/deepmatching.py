@@ -74,7 +74,9 @@ class MatchParams:
     ngh_rad : float or None
         Search radius in full-resolution pixels (0: whole image, slow). None (the
         default) scales it with the image: :data:`REACH` of its longer side, at least
-        :data:`MIN_RADIUS` px, so that a larger view of a moving structure is searched as far.
+        :data:`MIN_RADIUS` px, so that a larger view of a moving structure is searched as far
+        (the ``deepflow`` method bound to a mask instead follows the member's motion, see
+        :data:`flow.methods.deepflow.BASE_REACH_PX`).
     max_patch : int
         Largest patch side in downscaled pixels (4 * 2**levels).
     presmooth_sigma, desc_sigma : float
@@ -96,7 +98,8 @@ class MatchParams:
     downscale: int = field(default=2, metadata=bounds(1, 8, "factor the images are reduced by before matching"))
     ngh_rad: float | None = field(default=None, metadata=bounds(
         0, 10000, "search radius in full-resolution px (0: the whole image, slow)",
-        none_means=f"{REACH:g} of the frame's longer side, at least {MIN_RADIUS:g} px"))
+        none_means=f"deepflow with a mask: from the motion (32 px, widened where the motion passes half "
+                   f"of it); a frame solved whole: {REACH:g} of its longer side, at least {MIN_RADIUS:g} px"))
     max_patch: int = field(default=32, metadata=bounds(8, 512, "largest patch side in downscaled px"))
     presmooth_sigma: float = field(default=1.0, metadata=bounds(0, 10, "Gaussian smoothing before the gradient, px"))
     desc_sigma: float = field(default=1.0, metadata=bounds(0, 10, "Gaussian smoothing of each orientation map, px"))
@@ -118,6 +121,23 @@ def search_radius(params: MatchParams, shape: tuple[int, ...]) -> float:
     if params.ngh_rad is None:
         return max(MIN_RADIUS, REACH * max(shape[:2]))
     return float(params.ngh_rad)
+
+
+def _radius_cells(params: MatchParams, shape: tuple[int, ...]) -> tuple[int, int, int]:
+    """The downscaled image's patch rows and columns and the search radius in its pixels."""
+    ds = int(params.downscale)
+    height, width = shape[0] // ds, shape[1] // ds
+    reach = search_radius(params, shape)
+    radius = reach / ds if reach > 0 else max(height, width)
+    return height // ATOMIC, width // ATOMIC, int(math.ceil(min(radius, max(height, width))))
+
+
+def response_bytes(shape: tuple[int, ...], params: MatchParams) -> int:
+    """Bytes of the response volumes :func:`deep_matching` holds for images of ``shape``: the
+    atomic responses of both directions (patches x (2 radius + 1)^2, float32) and the coarser
+    levels built from them (a third more); the bulk of its memory."""
+    ny, nx, radius = _radius_cells(params, shape)
+    return int(2 * ny * nx * (2 * radius + 1) ** 2 * 4 * 4 // 3)
 
 
 @dataclass
@@ -638,11 +658,7 @@ def deep_matching(
         )
     f1 = _descriptor_planes(im1, params)
     f2 = _descriptor_planes(im2, params)
-    H, W = im1.shape
-    reach = search_radius(params, reference.shape)
-    radius = reach / ds if reach > 0 else max(H, W)
-    radius = int(math.ceil(min(radius, max(H, W))))
-    ny, nx = H // ATOMIC, W // ATOMIC
+    ny, nx, radius = _radius_cells(params, reference.shape)
     D = 2 * radius + 1
     n1, n2 = _patch_norms(f1), _patch_norms(f2)
     forward = np.zeros((ny, D, D, nx), np.float32)

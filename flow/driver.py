@@ -18,6 +18,7 @@ import functools
 import hashlib
 import queue
 import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -33,6 +34,7 @@ from tqdm import tqdm
 from flow.background import Background
 from flow.filtering import reference_offset
 from flow.io import FrameSource, InputError
+from flow.methods.base import crop_window
 from flow.photometric import LucasKanadeSigma, mean_abs, photometric_residual, sample
 from flow.storage import PoiStore
 from flow.tracks import Tracks
@@ -152,10 +154,13 @@ class _MethodPool:
     for a method that does not chain) at a time, so that no two threads share one (OpenCV flow
     objects are not thread-safe)."""
 
-    def __init__(self, factory: Callable[[], Any], jobs: int, reference: np.ndarray, mask: np.ndarray,
-                 read: np.ndarray | None) -> None:
+    def __init__(self, factory: Callable[[], Any], jobs: int) -> None:
         self._idle: queue.SimpleQueue = queue.SimpleQueue()
         self.methods = [factory() for _ in range(jobs)]
+        self.chain = 1
+
+    def bind(self, reference: np.ndarray, mask: np.ndarray, read: np.ndarray | None) -> None:
+        """Bind every instance to the reference and make them available."""
         for method in self.methods:
             if hasattr(method, "bind"):
                 method.bind(reference, mask, read=read)
@@ -244,13 +249,61 @@ _ChainFrame = tuple[int, float, np.ndarray, bool]
 _Solved = list[tuple[int, float, _FrameResult]]
 
 
-def _measure_chain(pool: _MethodPool, readout: _PoiReadout, items: list[_ChainFrame]) -> _Solved:
-    """Results of the kept frames of one chain, solved in order on one method instance."""
+def _work_area(method: Any, shape: tuple[int, ...], mask: np.ndarray,
+               background: Background | None) -> tuple[slice, slice] | None:
+    """The part of the frames a dense method can ever read: the POIs' bounding box plus the
+    widest context the method may take (``max_window_margin``; None: the whole frame), so that
+    frames are held, queued and measured at that size (a 4K frame of a small member costs what
+    the member costs, and the numbers are those of an --roi holding the area). None: the whole
+    frame (a method without a bound context, or background points, which lie anywhere)."""
+    widest = getattr(method, "max_window_margin", None)
+    margin = None if widest is None or background is not None else widest(shape)
+    return None if margin is None else crop_window(shape[:2], np.asarray(mask) != 0, margin)
+
+
+def _cutter(undistort: Undistort, area: tuple[slice, slice] | None) -> Undistort:
+    """``undistort`` followed by the cut to ``area`` (a copy: the frame itself is let go)."""
+    if area is None:
+        return undistort
+    if undistort is None:
+        return lambda grey: np.ascontiguousarray(grey[area])
+    return lambda grey: np.ascontiguousarray(undistort(grey)[area])
+
+
+# A method's kernels that take longer than this to load are being compiled (the first run on a
+# machine, or after an upgrade of numba): said on stderr, where the progress bar would sit at 0.
+COMPILE_NOTICE_S = 1.5
+
+
+def _warm_up(method: Any, progress: bool) -> None:
+    """Compile (or load) the method's kernels before the first frame, saying so where it takes
+    long, so that neither the progress bar nor Ctrl-C waits on a compiler in a worker thread."""
+    warm = getattr(method, "warm_up", None)
+    if warm is None:
+        return
+    notice = threading.Timer(COMPILE_NOTICE_S, lambda: print(
+        f"refflow: compiling the {getattr(method, 'name', '') or 'method'}'s kernels (first run only, "
+        "about 30 s on 2 cores; `make` does it at install)", file=sys.stderr, flush=True))
+    notice.daemon = True
+    if progress:
+        notice.start()
+    try:
+        warm()
+    finally:
+        notice.cancel()
+
+
+def _measure_chain(pool: _MethodPool, readout: _PoiReadout, items: list[_ChainFrame], *,
+                   stop: threading.Event | None = None) -> _Solved:
+    """Results of the kept frames of one chain, solved in order on one method instance; none
+    once ``stop`` is set (an interrupted run stops after the frame each job is measuring)."""
     with pool.lend() as method:
         if hasattr(method, "restart"):
             method.restart()
         results = []
         for index, time_s, grey, keep in items:
+            if stop is not None and stop.is_set():
+                return []
             result = readout.measure(method, grey)  # a warm-up frame too: the chain needs it
             if keep:
                 results.append((index, time_s, result))
@@ -277,9 +330,10 @@ def _chains(source: FrameSource, start: int, stop: int | None, undistort: Undist
         yield group
 
 
-def _run_chains(chains: Iterator[list[_ChainFrame]], measure_chain: Callable[[list[_ChainFrame]], _Solved],
+def _run_chains(chains: Iterator[list[_ChainFrame]], measure_chain: Callable[..., _Solved],
                 collect: Callable[[_Solved], None], *, jobs: int, chain: int) -> None:
-    """Solve every chain, ``jobs`` at a time, and ``collect`` their results in frame order."""
+    """Solve every chain, ``jobs`` at a time, and ``collect`` their results in frame order.
+    Interrupted (Ctrl-C), the jobs stop after their current frame, not their chain."""
     threads_before = cv2.getNumThreads()
     try:
         if jobs == 1:
@@ -290,16 +344,18 @@ def _run_chains(chains: Iterator[list[_ChainFrame]], measure_chain: Callable[[li
             # frames, or of chains of frames) keeps memory bounded and results in frame order.
             cv2.setNumThreads(1)
             bound = 2 * jobs if chain == 1 else jobs + 1
+            stop = threading.Event()
             with ThreadPoolExecutor(max_workers=jobs) as executor:
                 pending: deque = deque()
                 try:
                     for group in chains:
-                        pending.append(executor.submit(measure_chain, group))
+                        pending.append(executor.submit(measure_chain, group, stop=stop))
                         if len(pending) >= bound:
                             collect(pending.popleft().result())
                     while pending:
                         collect(pending.popleft().result())
                 except BaseException:
+                    stop.set()
                     executor.shutdown(wait=True, cancel_futures=True)
                     raise
     finally:
@@ -379,7 +435,20 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         mask = _pixels(reference.shape, poi_xy[:, 1], poi_xy[:, 0])
     regions = _regions(poi_xy, mask)
     read = None if background is None else _pixels(reference.shape, background.rows, background.columns)
-    pool = _MethodPool(factory, jobs, reference, mask, read)
+    pool = _MethodPool(factory, jobs)
+    _warm_up(pool.methods[0], progress)
+    digest = image_digest(reference)
+    area = _work_area(pool.methods[0], reference.shape, mask, background)
+    origin = np.zeros(2, poi_xy.dtype)
+    # Without undistortion (which needs the whole frame) the source cuts each frame before
+    # its colour conversion; with it, the undistorted frame is cut.
+    at_source = area if undistort is None and hasattr(source, "cut") else None
+    if area is not None:
+        origin = np.array([area[1].start, area[0].start], poi_xy.dtype)
+        reference, mask, poi_xy = np.ascontiguousarray(reference[area]), mask[area], poi_xy - origin
+        if at_source is None:
+            undistort = _cutter(undistort, area)
+    pool.bind(reference, mask, read)
     readout = _PoiReadout(reference, poi_xy, regions, background)
     measure_chain = functools.partial(_measure_chain, pool, readout)
     in_range = start <= reference_frame and (stop is None or reference_frame < stop)
@@ -394,7 +463,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
 
     collected = _Collected(len(poi_xy), store_dir)
     t1 = time.perf_counter()
-    with _progress(source, start, stop, progress) as bar:
+    cut = source.cut(at_source) if at_source is not None else contextlib.nullcontext()
+    with _progress(source, start, stop, progress) as bar, cut:
         chains = _chains(source, start, stop, undistort, reference_frame=reference_frame, chain=pool.chain)
         _run_chains(chains, measure_chain, functools.partial(collected.add, bar=bar), jobs=jobs, chain=pool.chain)
     t2 = time.perf_counter()
@@ -409,11 +479,12 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     camera = np.asarray(collected.cameras, np.float64) if background is not None else None
     sigma = np.asarray(collected.sigmas, np.float64)
     return Tracks(frame=frame_index, time_s=np.asarray(collected.times), dx=dx, dy=dy,
-                  residual=_per_region(collected.residuals, n_regions), x_px=readout.xs, y_px=readout.ys,
+                  residual=_per_region(collected.residuals, n_regions),
+                  x_px=readout.xs + np.float32(origin[0]), y_px=readout.ys + np.float32(origin[1]),
                   reference_frame=reference_frame, offset_dx=offset[0], offset_dy=offset[1],
                   timings_s={**_timings(t0, t1, t2, len(frame_index)), **pool.chain_counts()},
                   truncated=source.truncated, header_frames=source.header_frames,
-                  reference_digest=image_digest(reference),
+                  reference_digest=digest,
                   camera_dx=None if camera is None else _per_region(camera[..., 0], n_regions),
                   camera_dy=None if camera is None else _per_region(camera[..., 1], n_regions),
                   sigma_dx=_per_region(sigma[..., 0], n_regions), sigma_dy=_per_region(sigma[..., 1], n_regions),

@@ -11,6 +11,7 @@ before its container's duration is truncated (see :class:`FrameSource`).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -332,6 +333,7 @@ class FrameSource:
         self.allow_truncated = allow_truncated
         self.frames_read = 0
         self.truncated = False
+        self._cut: tuple[slice, slice] | None = None  # see cut()
         self.notes: list[str] = []
         self._unstamped = 0  # frames the decoder gave no time stamp (time_s = index / fps)
         self._time_scale = 1.0  # capture time per second of the file's timeline
@@ -460,7 +462,21 @@ class FrameSource:
     def _crop(self, image: np.ndarray) -> np.ndarray:
         r = self.roi
         # Crop before the colour conversion so 4K frames are never converted whole.
-        return to_grey(np.ascontiguousarray(image[r.y:r.y + r.height, r.x:r.x + r.width]), self._deep_gain)
+        image = image[r.y:r.y + r.height, r.x:r.x + r.width]
+        if self._cut is not None:
+            image = image[self._cut]
+        return to_grey(np.ascontiguousarray(image), self._deep_gain)
+
+    @contextlib.contextmanager
+    def cut(self, area: tuple[slice, slice] | None) -> Iterator[None]:
+        """Within the block, frames come out cut to ``area`` (rows, columns of the ROI), cut
+        before the colour conversion: a reader that needs only part of the ROI (the driver's
+        work area around a small member) never converts a 4K frame whole."""
+        self._cut = area
+        try:
+            yield
+        finally:
+            self._cut = None
 
     def __iter__(self) -> Iterator[tuple[int, float, np.ndarray]]:
         return self.frames()

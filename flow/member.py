@@ -158,6 +158,14 @@ class MemberFit:
     systematic: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,) px, x and y
 
 
+def context_px(params: MemberParams | None = None) -> int:
+    """How far beyond the mask :meth:`MemberEdges.from_reference` reads the reference: the
+    support grows ``grow_px`` beyond the mask and its background predictors read ``2 grow_px``
+    beyond the support (a window solved around the mask needs this much to give the numbers
+    of the whole frame)."""
+    return 3 * (params or MemberParams()).grow_px
+
+
 def _grow(reference: np.ndarray, mask: np.ndarray, params: MemberParams) -> np.ndarray:
     """The mask grown through member-like pixels, at most ``grow_px`` beyond it."""
     values = reference[mask]
@@ -605,12 +613,12 @@ class MemberEdges:
             c0 = np.where(self.vertical[:, None], line, lo)
             r1 = np.where(self.vertical[:, None], hi, line)
             c1 = np.where(self.vertical[:, None], line, hi)
-            return (1 - frac) * img[r0, c0] + frac * img[r1, c1]
+            return (1 - frac) * img[r0, c0].astype(np.float64) + frac * img[r1, c1].astype(np.float64)
 
         reference = self._ref_image[np.where(self.vertical[:, None], along, line),
                                     np.where(self.vertical[:, None], line, along)].astype(np.float64)
         scale = 1.0 if gain is None else gain
-        cur = image.astype(np.float64)
+        cur = image  # sampled as float64 (not copied whole: a 4K frame is 66 MB of float64)
         var = np.full(n, np.nan)
         misfit = np.full(n, np.nan)
         for _ in range(N_STEPS):

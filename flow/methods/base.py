@@ -63,15 +63,29 @@ CROP_MARGIN_PX = 64
 CROP_MAX_SHARE = 0.8
 
 
+def bounding_box(needed: np.ndarray) -> tuple[int, int, int, int] | None:
+    """``(first row, last row, first column, last column)`` of the True pixels (None: none)."""
+    rows = np.flatnonzero(needed.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(needed.any(axis=0))
+    return int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
+
+
 def crop_window(shape: tuple[int, int], needed: np.ndarray, margin: int) -> tuple[slice, slice] | None:
     """Rows and columns of the bounding box of ``needed`` grown by ``margin`` px and clipped to
     the frame; None where it would cover most of the frame anyway (or nothing is needed)."""
-    rows, cols = np.nonzero(needed)
-    if rows.size == 0:
+    return box_window(shape, bounding_box(needed), margin)
+
+
+def box_window(shape: tuple[int, int], box: tuple[int, int, int, int] | None,
+               margin: int) -> tuple[slice, slice] | None:
+    """:func:`crop_window` of a bounding box (:func:`bounding_box`)."""
+    if box is None:
         return None
     height, width = shape
-    r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, height)
-    c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, width)
+    r0, r1 = max(box[0] - margin, 0), min(box[1] + margin + 1, height)
+    c0, c1 = max(box[2] - margin, 0), min(box[3] + margin + 1, width)
     if (r1 - r0) * (c1 - c0) > CROP_MAX_SHARE * height * width:
         return None
     return slice(r0, r1), slice(c0, c1)
@@ -106,6 +120,7 @@ class DenseMethod(Method):
         super().__init__(crop=crop, **params)
         self._crop_on = crop
         self._window: tuple[slice, slice] | None = None
+        self._needed_box: tuple[int, int, int, int] | None = None
         self._bound_shape: tuple[int, ...] | None = None
 
     def bind(self, reference: np.ndarray, mask: np.ndarray, *, read: np.ndarray | None = None) -> None:
@@ -115,19 +130,33 @@ class DenseMethod(Method):
         (static background points). The base class cuts out the window it solves (see
         ``crop``); subclasses that use more call it first."""
         self._window = None
+        self._needed_box = None
         self._bound_shape = reference.shape
         mask = np.asarray(mask, bool)
         if not self._crop_on or mask.shape != reference.shape:
             return
+        self._needed_box = bounding_box(mask if read is None else mask | np.asarray(read, bool))
         margin = self.window_margin(reference.shape)
         if margin is not None:
-            needed = mask if read is None else mask | np.asarray(read, bool)
-            self._window = crop_window(reference.shape, needed, margin)
+            self._window = box_window(reference.shape, self._needed_box, margin)
+
+    def window_with(self, margin: int | None) -> tuple[slice, slice] | None:
+        """The window around the pixels read with ``margin`` px of context (None: the whole
+        frame), for a method whose context changes from frame to frame (after :meth:`bind`)."""
+        if margin is None or self._bound_shape is None:
+            return None
+        return box_window(self._bound_shape[:2], self._needed_box, margin)
 
     def window_margin(self, shape: tuple[int, ...]) -> int | None:
         """Pixels of context the method needs around the pixels it is asked for, in a frame
         of ``shape``; None: it must see the whole frame."""
         return CROP_MARGIN_PX
+
+    def max_window_margin(self, shape: tuple[int, ...]) -> int | None:
+        """The widest context the method may take around the pixels read in any frame of
+        ``shape`` (None: the whole frame). The driver holds and hands over frames cut to the
+        POIs' box plus this much, so a small member in a large frame never costs a frame."""
+        return self.window_margin(shape) if self._crop_on else None
 
     def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         """Flow from ``reference`` to ``current``.
@@ -147,7 +176,11 @@ class DenseMethod(Method):
         return self._dense(reference, current)
 
     def _dense(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
-        window = self._window
+        return self._dense_in(reference, current, self._window)
+
+    def _dense_in(self, reference: np.ndarray, current: np.ndarray,
+                  window: tuple[slice, slice] | None) -> np.ndarray:
+        """The flow of the pair solved in ``window`` (None: the whole frame), NaN outside it."""
         if window is None or reference.shape != self._bound_shape:
             return self._solve(reference, current, whole_shape=reference.shape)
         flow = np.full(reference.shape + (2,), np.nan, np.float32)

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from flow.deepmatching import MatchParams, deep_matching, densify, search_radius
-from flow.member import MemberEdges, MemberFit
+from flow.deepmatching import MatchParams, deep_matching, densify, response_bytes, search_radius
+from flow.member import MemberEdges, MemberFit, context_px
 from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
 from flow.params import Param, declared, with_defaults
 from flow.photometric import sample
@@ -57,20 +57,58 @@ def _resolve(preset: str, overrides: dict[str, Any]) -> dict[str, Any]:
     return merged
 
 
+# The matching's reach (its search radius, full-resolution px) follows the motion, not the
+# frame: a member's motion decides how far a match must look, and the window solved (the POIs'
+# bounding box plus the reach) and the matching's memory (which grows with the window's area
+# times the reach squared) follow it. A measurement starts at BASE_REACH_PX, or where its chain
+# has seen the POIs move (twice their latest motion, in doublings of the base); where the POIs'
+# median motion found comes past WIDEN_SHARE of the reach, the motion may be leaving it, and
+# the frame is solved again with the reach doubled (up to MAX_REACH_PX). A 4K frame then costs
+# what its member's motion costs: with the old reach (a tenth of the frame's longer side, 384
+# px at 4K) a 500x300 px member took 23 GB and 100 s a frame. The chain's own frames only:
+# what earlier chains saw would make a frame's numbers depend on --jobs and --frames.
+BASE_REACH_PX = 32.0
+MEMBER_CONTEXT_PX = context_px()
+WIDEN_SHARE = 0.5
+MAX_REACH_PX = 256.0
+# The matching's response volumes (both directions, all levels) are held under this many bytes
+# per solve: a reach that would take more is searched at a coarser downscale (each doubling
+# divides them by 16), so memory stays bounded whatever the motion.
+MATCH_BUDGET_BYTES = 384 * 2**20
+
+
+def _reach_for(motion_px: float | None) -> float:
+    """The reach a measurement starts from: the base, doubled until it holds twice the motion."""
+    reach = BASE_REACH_PX
+    while motion_px is not None and reach < 2.0 * motion_px and reach < MAX_REACH_PX:
+        reach *= 2.0
+    return reach
+
+
 def _matching_margin(match: MatchParams, shape: tuple[int, ...]) -> int | None:
-    """Context a matching needs around the pixels asked for in a frame of ``shape``: the
-    frame's search radius, so that cutting out a window does not shorten the matching's reach
-    (None where the whole image is searched: it is solved whole)."""
-    radius = search_radius(match, shape)
-    return max(CROP_MARGIN_PX, int(np.ceil(radius))) if radius > 0 else None
+    """Context a matching needs around the pixels asked for in a frame of ``shape``, at the
+    start: its explicit search radius (``ngh_rad``), or the base reach (None where the whole
+    image is searched: it is solved whole)."""
+    radius = BASE_REACH_PX if match.ngh_rad is None else search_radius(match, shape)
+    return _margin(radius) if radius > 0 else None
 
 
-def _reach_of(match: MatchParams, whole_shape: tuple[int, ...]) -> MatchParams:
-    """``match`` with the search radius of a frame of ``whole_shape`` made explicit, so that a
-    window cut out of that frame is searched as far as the frame would be."""
-    if match.ngh_rad is not None:
-        return match
-    return dataclasses.replace(match, ngh_rad=search_radius(match, whole_shape))
+def _margin(reach: float) -> int:
+    """The window's margin around the POIs for a matching of ``reach`` px: room for the
+    matching and for the pyramid and smoothing to settle (CROP_MARGIN_PX)."""
+    return max(CROP_MARGIN_PX, int(np.ceil(reach)))
+
+
+def _match_at(match: MatchParams, reach: float | None, window_shape: tuple[int, ...],
+              whole_shape: tuple[int, ...]) -> MatchParams:
+    """``match`` with its search radius made explicit (``reach``; None: the frame's default,
+    for a frame solved without POIs to follow) and a downscale coarse enough for a
+    ``window_shape`` matching to fit :data:`MATCH_BUDGET_BYTES`."""
+    if match.ngh_rad is None:
+        match = dataclasses.replace(match, ngh_rad=search_radius(match, whole_shape) if reach is None else reach)
+    while match.ngh_rad > 0 and match.downscale < 8 and response_bytes(window_shape, match) > MATCH_BUDGET_BYTES:
+        match = dataclasses.replace(match, downscale=min(8, 2 * match.downscale))
+    return match
 
 
 # Frames of one chain (see the driver, :func:`flow.driver.track_dense`) are measured in order.
@@ -288,6 +326,13 @@ def _background_static(flow: np.ndarray, region: _Region) -> bool | None:
     return float(np.hypot(*np.median(outside, axis=0))) <= STATIC_RATIO * moved + STATIC_SLACK_PX
 
 
+def _poi_motion(flow: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> float:
+    """The POIs' median motion (px; NaN where none is finite)."""
+    motion = np.hypot(flow[rows, cols, 0], flow[rows, cols, 1])
+    motion = motion[np.isfinite(motion)]
+    return float(np.median(motion)) if motion.size else float("nan")
+
+
 def _in_band(value: float, key: float) -> bool:
     """A tracked frame's mismatch (or residual) within its chain key's band."""
     return key / WARM_RATIO - MATCH_SLACK <= value <= key * WARM_RATIO + MATCH_SLACK
@@ -338,10 +383,12 @@ class DeepFlow(DenseMethod):
         verified by the photometric mismatch (default True; False: every frame measured in
         full). With background points to read, every frame is measured in full.
     crop : bool
-        Solve the dense flow only around the pixels that are read (the POIs' and background
-        points' bounding box plus :data:`flow.methods.base.CROP_MARGIN_PX` or the whole frame's
-        search radius, whichever is larger; default True); the flow elsewhere is NaN.
-        Without :meth:`bind` the whole frame is solved.
+        Solve the dense flow only around the pixels that are read (default True): the POIs'
+        and background points' bounding box plus a margin that holds the matching's reach
+        (which follows the member's motion, :data:`BASE_REACH_PX`; or ``ngh_rad``), the
+        pyramid's settling (:data:`flow.methods.base.CROP_MARGIN_PX`) and the member's
+        reference analysis; the flow elsewhere is NaN. Without :meth:`bind` the whole frame is
+        solved, with the frame's reach (:func:`flow.deepmatching.search_radius`).
     downscale, ngh_rad, max_patch, ... : matching parameters
     alpha, beta, delta, gamma, kappa, sigma, eta, n_outer, n_sor, omega, ... :
         variational parameters; ``beta = 0`` switches the matching term (and
@@ -386,8 +433,16 @@ class DeepFlow(DenseMethod):
         # Frames measured in full and tracked from their predecessor (see CHAIN_LENGTH), the
         # regions' readings by model and why each full measurement chose its model: the driver
         # sums every instance's counts into the sidecar's timings.
+        # (``reach_widened``: dense solves done again with a longer reach, see WIDEN_SHARE.)
         self.counts = dict.fromkeys(("full_frames", "warm_frames", "outline_readings", "affine_readings",
-                                     "dense_readings", *(f"why_{reason}" for reason in REASONS)), 0)
+                                     "dense_readings", "reach_widened",
+                                     *(f"why_{reason}" for reason in REASONS)), 0)
+        # The matching's reach (see BASE_REACH_PX): the chain's POIs' latest motion (px, None:
+        # none seen yet), the reach of the latest dense solve (the window it took is
+        # ``window_with(_margin(reach))``) and the POIs whose motion decides it (see bind).
+        self._motion_px: float | None = None
+        self.last_reach_px: float | None = None
+        self._poi_rows = self._poi_cols = np.zeros(0, np.intp)
         # Scratch reused from frame to frame: an instance serves one thread at a time.
         self._workspace = Workspace()
         self._regions: list[_Region] = []  # one per region of the mask (see bind)
@@ -406,7 +461,10 @@ class DeepFlow(DenseMethod):
         # The driver reads chain_length after bind: without a region to track (or with
         # background points, whose flow only the dense solve gives) frames stand alone.
         self.chain_length = 0
+        self._motion_px = None
         mask = np.asarray(mask)
+        self._poi_rows, self._poi_cols = (np.nonzero(mask) if self._crop_on and mask.shape == reference.shape
+                                          else (np.zeros(0, np.intp),) * 2)
         if not (self._member_on or self._texture_on) or mask.shape != reference.shape:
             return
         # One member per region of a labelled mask (a bool mask: one region, label 1).
@@ -423,18 +481,51 @@ class DeepFlow(DenseMethod):
     def window_margin(self, shape: tuple[int, ...]) -> int | None:
         return _matching_margin(self._match, shape)
 
+    def max_window_margin(self, shape: tuple[int, ...]) -> int | None:
+        # The reach may widen up to MAX_REACH_PX; the member's reference analysis reads
+        # MEMBER_CONTEXT_PX beyond the mask (a frame cut closer would change its numbers).
+        widest = super().max_window_margin(shape)
+        if self._crop_on and self._match.ngh_rad is None and self._var.beta > 0:
+            widest = _margin(MAX_REACH_PX)
+        return None if widest is None else max(widest, MEMBER_CONTEXT_PX)
+
+    def warm_up(self) -> None:
+        """Compile the kernels before the first frame (see :func:`compile_kernels`)."""
+        compile_kernels()
+
     def restart(self) -> None:
         """Begin a chain: the next frame gets the full measurement, the following ones (until
         the next restart or bind) may be tracked from their predecessor. Before the first
         restart after a bind every call of :meth:`calc` stands alone."""
         self._chaining = self.chain_length > 1 and bool(self._regions)
+        self._motion_px = None
         for region in self._regions:
             region.restart()
+
+    def _dense_reaching(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
+        """The dense flow in the window of a reach that holds the POIs' motion (see
+        :data:`BASE_REACH_PX`): from the chain's motion so far, doubled while the motion found
+        comes past :data:`WIDEN_SHARE` of it. Unbound, ``crop=false`` or with an explicit
+        ``ngh_rad``: one solve, in the bound window (the whole frame's reach where there are
+        no POIs to follow)."""
+        adaptive = self._match.ngh_rad is None and self._var.beta > 0 and self._poi_rows.size > 0
+        if not adaptive or current.shape != self._bound_shape:
+            self.last_reach_px = None
+            return self._dense(reference, current)
+        reach = _reach_for(self._motion_px if self._chaining else None)
+        while True:
+            self.last_reach_px = reach
+            flow = self._dense_in(reference, current, self.window_with(_margin(reach)))
+            found = _poi_motion(flow, self._poi_rows, self._poi_cols)
+            if not (found > WIDEN_SHARE * reach) or reach >= MAX_REACH_PX:
+                return flow
+            self.counts["reach_widened"] += 1
+            reach = min(2.0 * reach, MAX_REACH_PX)
 
     def _solve(self, reference: np.ndarray, current: np.ndarray, *,
                whole_shape: tuple[int, ...]) -> np.ndarray:
         if self._var.beta > 0:
-            match = _reach_of(self._match, whole_shape)
+            match = _match_at(self._match, self.last_reach_px, reference.shape, whole_shape)
             grid = deep_matching(reference, current, match)
             match_flow, match_weight = densify(grid, reference.shape, nearest=True)
             return refine(
@@ -462,13 +553,15 @@ class DeepFlow(DenseMethod):
             flow = self._warm_flow
         else:
             self.counts["full_frames"] += 1
-            flow = self._dense(reference, current)
+            flow = self._dense_reaching(reference, current)
         for region, warm in zip(regions, tracked, strict=True):
             found = warm if warm is not None else self._full(reference, current, flow, region)
             if found is not None:
                 u, v, self.last_sigmas_px[region.label] = found
                 flow[region.rows, region.cols, 0] = u
                 flow[region.rows, region.cols, 1] = v
+        if self._chaining:
+            self._motion_px = _poi_motion(flow, self._poi_rows, self._poi_cols)
         return flow
 
     def _count(self, model: str | None, reason: str | None = None) -> None:
@@ -557,6 +650,41 @@ class DeepFlow(DenseMethod):
         return u, v, sigma
 
 
+def _warm_up_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A small scene every kernel of the default runs on: a faintly textured bar over a
+    textured wall (so the outline, the texture and the dense flow are all fitted), its frame
+    with the bar moved by 0.6 px, and the bar's mask."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    height, width = 96, 128
+    wall = cv2.GaussianBlur(rng.uniform(60, 160, (height, 4 * width)).astype(np.float32), (0, 0), 3.0)
+    paint = 150 + 4 * cv2.GaussianBlur(rng.standard_normal((height, 4 * width)).astype(np.float32), (0, 0), 2.0)
+    x = np.arange(4 * width) / 4.0
+    frames = []
+    for shift in (0.0, 0.6):
+        cover = np.clip(np.minimum(x + 0.125 - 48 - shift, 80 + shift - (x - 0.125)) * 4, 0, 1)[None, :]
+        moved = np.roll(paint, int(round(4 * shift)), axis=1)
+        fine = cover * moved + (1 - cover) * wall
+        frames.append(np.clip(fine.reshape(height, width, 4).mean(axis=2), 0, 255).astype(np.uint8))
+    mask = np.zeros((height, width), bool)
+    mask[24:88, 54:74] = True
+    return frames[0], frames[1], mask
+
+
+def compile_kernels() -> None:
+    """Compile (or load from numba's cache) every kernel the default method runs, on a small
+    scene: a chain's full measurement and a tracked frame. The first run on a machine
+    compiles them (about 30 s on 2 cores); ``make`` runs this once at install, and
+    ``refflow track`` before its first frame (a fraction of a second once they are cached)."""
+    reference, moved, mask = _warm_up_pair()
+    method = DeepFlow()
+    method.bind(reference, mask)
+    method.restart()
+    for current in (reference, moved, moved):
+        method.calc(reference, current)
+
+
 @register("deepflow-dense")
 class DeepFlowDense(DeepFlow):
     """``deepflow`` without the edge refinement: the dense DeepMatching + DeepFlow field at the
@@ -603,6 +731,8 @@ class DeepMatchingDense(DenseMethod):
 
     def _solve(self, reference: np.ndarray, current: np.ndarray, *,
                whole_shape: tuple[int, ...]) -> np.ndarray:
-        grid = deep_matching(reference, current, _reach_of(self._match, whole_shape))
+        # Bound and cropping: the base reach (no chain to follow the motion from); else the frame's.
+        reach = BASE_REACH_PX if self._crop_on and self._bound_shape is not None else None
+        grid = deep_matching(reference, current, _match_at(self._match, reach, reference.shape, whole_shape))
         flow, _ = densify(grid, reference.shape, nearest=self._nearest)
         return flow
