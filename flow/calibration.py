@@ -17,8 +17,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.io import FrameSource, InputError, Roi, as_uint8
-from flow.jsonfiles import json_number, load_json, shown
+from flow.io.errors import InputError
+from flow.io.jsonfiles import json_number, load_json, shown
+from flow.io.source import FrameSource, Roi, as_uint8
 
 
 def board_points(cols: int, rows: int, square_mm: float) -> np.ndarray:

@@ -28,7 +28,8 @@ from flow import pipeline, registry
 from flow.export import add_parser as add_export_parser
 from flow.gui import add_parser as add_gui_parser
 from flow.gui.project import PROJECT_HELP, expand_project_argv
-from flow.io import InputError, quiet_decoder_logs
+from flow.io.errors import InputError
+from flow.io.source import quiet_decoder_logs
 from flow.modal import add_parser as add_modal_parser
 from flow.options import (
     BackgroundOptions,

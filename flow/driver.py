@@ -32,7 +32,8 @@ from tqdm import tqdm
 
 from flow.background import Background
 from flow.filtering import reference_offset
-from flow.io import FrameSource, InputError
+from flow.io.errors import InputError
+from flow.io.source import FrameSource
 from flow.photometric import LucasKanadeSigma, mean_abs, photometric_residual, sample
 from flow.storage import PoiStore
 from flow.tracks import Tracks

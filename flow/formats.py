@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from flow.filtering import block_rows
-from flow.io import InputError
+from flow.io.errors import InputError
 from flow.storage import PoiStore, write_npz
 from flow.tracks import NOT_ADDITIVE_TIMINGS, Measurement, Tracks
 

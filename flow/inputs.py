@@ -13,8 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from flow.io import FrameSource, InputError, Roi
-from flow.jsonfiles import load_json, shown
+from flow.io.errors import InputError
+from flow.io.jsonfiles import load_json, shown
+from flow.io.source import FrameSource, Roi
 from flow.options import BackgroundOptions, RegionOptions, SourceOptions
 
 

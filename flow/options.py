@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from flow.camfiles import companion_files
+from flow.io.camfiles import companion_files
 from flow.quality import MAX_TYPICAL_SIGMA_PX
 from refflow.io import versions
 

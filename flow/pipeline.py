@@ -4,7 +4,7 @@ mask (labelled regions) and background, scale, track, measure, write.
 :func:`track` is ``refflow track``; :func:`merge` joins the raw-tracks parts of one run
 (``refflow merge``) through the same scale (:func:`flow.scale.measurement_scale`) and the same
 writer. Both take the typed options of :mod:`flow.options` and refuse bad input with
-:class:`flow.errors.InputError` before any frame is read where they can; notes and warnings
+:class:`flow.io.errors.InputError` before any frame is read where they can; notes and warnings
 the user should see go to stderr as they happen.
 """
 
@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from flow import inputs, registry
-from flow.errors import InputError
-from flow.io import FrameSource, check_fps
+from flow.io.errors import InputError
+from flow.io.source import FrameSource, check_fps
 from flow.options import FilterOptions, FramesInfo, InputInfo, MergeOptions, RunInfo, TrackOptions
 from flow.reference import check as check_reference
 from flow.scale import NO_SCALE_NOTE, Scale, check_scale_options, measurement_scale

@@ -7,8 +7,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from flow.imagefiles import read_image
-from flow.io import DISPLAY_ROTATIONS, InputError, Roi
+from flow.io.errors import InputError
+from flow.io.imagefiles import read_image
+from flow.io.source import DISPLAY_ROTATIONS, Roi
 
 
 def mask_labels(image: np.ndarray) -> np.ndarray:

@@ -46,7 +46,7 @@ def default_out_dir(video: str | Path) -> Path:
 def cmd_gui(args: argparse.Namespace) -> int:
     """Serve the page until Ctrl-C; a run in progress is cancelled (its files removed)."""
     from flow.gui.server import make_server
-    from flow.io import InputError
+    from flow.io.errors import InputError
 
     if args.port is not None and not 0 <= args.port <= 65535:
         raise InputError(f"--port {args.port} is not a port number (0-65535)")

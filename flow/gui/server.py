@@ -45,7 +45,8 @@ import numpy as np
 
 from flow.gui import project as projects
 from flow.gui.paths import OutputFolder, PathRefused
-from flow.io import FrameSource, InputError
+from flow.io.errors import InputError
+from flow.io.source import FrameSource
 
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                 ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml", ".png": "image/png"}
@@ -109,7 +110,7 @@ class Frames:
     def jpeg(self, index: int) -> bytes | None:
         import cv2
 
-        from flow.io import as_uint8
+        from flow.io.source import as_uint8
 
         with self.lock:
             if index in self.cache:
@@ -217,7 +218,7 @@ class App:
 
     def __init__(self, video: str | Path, out_dir: str | Path, *, fps: float | None = None,
                  calibration: str | Path | None = None) -> None:
-        from flow.camfiles import companion_files
+        from flow.io.camfiles import companion_files
 
         self.video = Path(video)
         self.source = FrameSource(self.video, fps=fps, require_fps=False, allow_truncated=True)
@@ -508,7 +509,7 @@ def write_mask(path: Path, regions: list[dict[str, Any]], frame_size: tuple[int,
     import cv2
 
     from flow import poi
-    from flow.io import Roi
+    from flow.io.source import Roi
     from refflow.io import atomic_path
 
     width, height = frame_size

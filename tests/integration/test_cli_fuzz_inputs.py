@@ -66,7 +66,7 @@ def _check_outcome(rc: int, err: str, out) -> None:
 def test_any_reference_content_measures_or_refuses_naming_a_usable_frame(tmp_path_factory, later_frames, gain,
                                                                          offset, noise, seed) -> None:
     from flow import poi
-    from flow.io import Roi
+    from flow.io.source import Roi
     from flow.reference import problem, surroundings
 
     folder = tmp_path_factory.mktemp("reference")

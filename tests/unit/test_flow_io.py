@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from flow.io import FrameSource, InputError, Roi, as_uint8, deep_image_gain, significant_bits
+from flow.io.errors import InputError
+from flow.io.source import FrameSource, Roi, as_uint8, deep_image_gain, significant_bits
 from flow.poi import load_mask, poi_coordinates, polygon_mask, rect_mask
 
 
@@ -256,7 +257,7 @@ def test_pillow_says_nothing_while_the_folder_is_scanned(tmp_path, caplog) -> No
 def test_read_image_holds_decoder_noise_back_for_the_message(tmp_path, capfd) -> None:
     """libpng prints its errors on file descriptor 2 itself: they become the complaint that goes
     into the one-line message (a mask, the first image of a folder), and nothing reaches stderr."""
-    from flow.imagefiles import read_image
+    from flow.io.imagefiles import read_image
 
     good = tmp_path / "good.png"
     cv2.imwrite(str(good), np.full((6, 8), 90, np.uint8))
@@ -307,7 +308,7 @@ def test_opencv_logs_nothing_once_refflow_quiets_it(tmp_path) -> None:
 
     clip = tmp_path / "clip.mp4"  # an MP4 whose first box header is damaged
     clip.write_bytes(b"\x01\x00\x00\x20ftypisom" + bytes(200))
-    script = ("import cv2, sys; from flow.io import open_video, quiet_decoder_logs; quiet_decoder_logs(); "
+    script = ("import cv2, sys; from flow.io.source import open_video, quiet_decoder_logs; quiet_decoder_logs(); "
               "print(cv2.utils.logging.getLogLevel()); "
               "assert not open_video(sys.argv[1]).isOpened() and cv2.imread(sys.argv[1]) is None")
     env = {k: v for k, v in os.environ.items() if k not in ("OPENCV_LOG_LEVEL", "OPENCV_FFMPEG_LOGLEVEL")}

@@ -11,7 +11,7 @@ import pytest
 
 from flow import registry
 from flow.driver import track_dense, track_sparse
-from flow.io import FrameSource
+from flow.io.source import FrameSource
 from flow.methods.base import CROP_MARGIN_PX
 from flow.methods.klt import KLT
 from flow.quality import measure

@@ -8,8 +8,8 @@ import subprocess
 import numpy as np
 import pytest
 
-from flow.errors import InputError
-from flow.io import FPS_RANGE, FrameSource, check_fps
+from flow.io.errors import InputError
+from flow.io.source import FPS_RANGE, FrameSource, check_fps
 
 
 def _ffmpeg(*args: str) -> None:

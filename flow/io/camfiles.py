@@ -24,7 +24,7 @@ Phantom
     in three bytes).
 
 All integers are little-endian. Colour recordings are refused with an
-:class:`~flow.io.InputError` (the readers return grey frames only), as is
+:class:`~flow.io.errors.InputError` (the readers return grey frames only), as is
 every malformed file, with a message naming the problem and what to do.
 """
 
@@ -39,7 +39,7 @@ from typing import Literal
 
 import numpy as np
 
-from flow.errors import InputError
+from flow.io.errors import InputError
 
 __all__ = [
     "CAMERA_SUFFIXES",
@@ -71,7 +71,7 @@ def open_camera_file(path: str | os.PathLike[str]) -> CameraFile | None:
 
     Raises
     ------
-    flow.io.InputError
+    flow.io.errors.InputError
         The file is missing, malformed, truncated or in a variant these
         readers do not support.
     """
@@ -184,7 +184,7 @@ class CameraFile:
         ------
         IndexError
             ``index`` is outside the file's frames.
-        flow.io.InputError
+        flow.io.errors.InputError
             The frame's bytes are missing or inconsistent with the header.
         """
         return self._read_frame(self._check_index(index))

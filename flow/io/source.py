@@ -23,9 +23,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from flow.camfiles import CAMERA_SUFFIXES, open_camera_file
-from flow.errors import InputError
-from flow.imagefiles import because, check_image_file, read_image
+from flow.io.camfiles import CAMERA_SUFFIXES, open_camera_file
+from flow.io.errors import InputError
+from flow.io.imagefiles import because, check_image_file, read_image
 
 __all__ = ["CAMERA_SUFFIXES", "IMAGE_SUFFIXES", "FrameSource", "InputError", "Roi", "as_uint8", "to_grey"]
 
@@ -415,7 +415,7 @@ class FrameSource:
                           f"not rounded to 8 bits; {bits}-bit data)")
 
     def _open_camera(self, fps: float | None) -> None:
-        """A high-speed camera recording (:mod:`flow.camfiles`): size, rate, depth from its header."""
+        """A high-speed camera recording (:mod:`flow.io.camfiles`): size, rate, depth from its header."""
         camera = self._camera
         self.width, self.height = camera.width, camera.height
         self.header_frames = camera.frame_count
