@@ -92,7 +92,7 @@ def poi_labels(options: RegionOptions, source: FrameSource, undistort: Any) -> n
     Regions: a labelled mask PNG (grey values 1..N), or several masks (one region each,
     or their labels in turn).
     """
-    from flow import poi
+    from flow.measure import poi
 
     given = [a for a in (options.masks, options.rect, options.polygon) if a]
     if len(given) != 1:
@@ -132,7 +132,7 @@ def measured_regions(labels: np.ndarray, poi_xy: np.ndarray, grid_step: int) -> 
 
 def mask_cut_by_roi(options: RegionOptions, source: FrameSource, notes: list[str], command: str) -> int:
     """Pixels of full-frame masks that the ROI leaves out; warns (and notes) when any."""
-    from flow import poi
+    from flow.measure import poi
 
     outside = sum(poi.pixels_outside_roi(path, frame_size=source.size, roi=source.roi)
                   for path in options.masks)
@@ -147,8 +147,8 @@ def mask_cut_by_roi(options: RegionOptions, source: FrameSource, notes: list[str
 def background_for(options: BackgroundOptions, source: FrameSource, undistort: Any,
                    poi_mask: np.ndarray) -> Any:
     """The static points of the background mask or rectangle (None without them)."""
-    from flow import poi
-    from flow.background import Background
+    from flow.measure import poi
+    from flow.measure.background import Background
 
     if options.mask and options.rect:
         raise InputError("pass one of --background-mask and --background-rect, not both")

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from flow.io.camfiles import companion_files
-from flow.quality import MAX_TYPICAL_SIGMA_PX
+from flow.measure.quality import MAX_TYPICAL_SIGMA_PX
 from refflow.io import versions
 
 

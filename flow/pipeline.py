@@ -24,8 +24,8 @@ import numpy as np
 from flow import inputs, registry
 from flow.io.errors import InputError
 from flow.io.source import FrameSource, check_fps
+from flow.measure.reference import check as check_reference
 from flow.options import FilterOptions, FramesInfo, InputInfo, MergeOptions, RunInfo, TrackOptions
-from flow.reference import check as check_reference
 from flow.scale import NO_SCALE_NOTE, Scale, check_scale_options, measurement_scale
 from flow.write import output_names, write_outputs
 from refflow.io import finite_or_none
@@ -214,7 +214,7 @@ def _check_method_fits(options: TrackOptions, name: str, sparse: bool, frames: t
 
 def _set_up(options: TrackOptions, notes: list[str], name: str, sparse: bool) -> _Setup:
     """Open the source, undistort, scale, mask and background, in this order."""
-    from flow import poi
+    from flow.measure import poi
 
     source = inputs.open_source(options.source)
     undistort, calibration = inputs.undistorter(options.source, source)
@@ -235,7 +235,7 @@ def _set_up(options: TrackOptions, notes: list[str], name: str, sparse: bool) ->
 def _track_frames(options: TrackOptions, setup: _Setup, method: Any, new_method: Any, sparse: bool, jobs: int,
                   frames: tuple[int, int | None] | None, notes: list[str]) -> Any:
     """The unfiltered tracks; the source's notes and the warnings raised meanwhile join ``notes``."""
-    from flow import driver
+    from flow.measure import driver
 
     # The per-POI store goes beside the output: a real disk, unlike a memory-backed /tmp.
     store_dir = Path(options.outputs.csv or options.outputs.raw_tracks).resolve().parent
@@ -308,7 +308,7 @@ def _poi_info(setup: _Setup, tracks: Any, sparse: bool, grid_step: int) -> dict[
 def merge(options: MergeOptions) -> tuple[int, Outcome]:
     """Join raw-tracks parts of one run into one measurement; returns the number of parts
     and what was measured."""
-    from flow import formats
+    from flow.measure import formats
 
     started = time.perf_counter()
     check_scale_options(options.scale)

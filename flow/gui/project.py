@@ -30,7 +30,7 @@ from typing import Any
 
 from flow.io.errors import InputError
 from flow.io.jsonfiles import load_json
-from flow.quality import MAX_TYPICAL_SIGMA_PX
+from flow.measure.quality import MAX_TYPICAL_SIGMA_PX
 
 FORMAT = "refflow-project/1"
 

@@ -508,8 +508,8 @@ def write_mask(path: Path, regions: list[dict[str, Any]], frame_size: tuple[int,
     """A full-frame mask PNG (white inside any region), drawn by the tool's ``--polygon``."""
     import cv2
 
-    from flow import poi
     from flow.io.source import Roi
+    from flow.measure import poi
     from refflow.io import atomic_path
 
     width, height = frame_size

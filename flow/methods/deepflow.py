@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 
 from flow.deepmatching import MatchParams, deep_matching, densify, search_radius
+from flow.measure.photometric import sample
 from flow.member import MemberEdges, MemberFit
 from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
 from flow.params import Param, declared, with_defaults
-from flow.photometric import sample
 from flow.regionfit import RegionFit, RegionMotion
 from flow.variational import VariationalParams, Workspace, refine
 
@@ -73,7 +73,7 @@ def _reach_of(match: MatchParams, whole_shape: tuple[int, ...]) -> MatchParams:
     return dataclasses.replace(match, ngh_rad=search_radius(match, whole_shape))
 
 
-# Frames of one chain (see the driver, :func:`flow.driver.track_dense`) are measured in order.
+# Frames of one chain (see the driver, :func:`flow.measure.driver.track_dense`) are measured in order.
 # The first frame of a chain gets the full measurement: DeepMatching + DeepFlow, the member's
 # edges fitted from the dense flow, and the check that they match the POIs better. Where the
 # member's edges won, the next frames are tracked from the previous frame's member motion

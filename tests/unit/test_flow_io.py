@@ -8,7 +8,7 @@ import pytest
 
 from flow.io.errors import InputError
 from flow.io.source import FrameSource, Roi, as_uint8, deep_image_gain, significant_bits
-from flow.poi import load_mask, poi_coordinates, polygon_mask, rect_mask
+from flow.measure.poi import load_mask, poi_coordinates, polygon_mask, rect_mask
 
 
 def test_roi_parse_and_bounds() -> None:

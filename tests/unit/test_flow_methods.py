@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from flow import registry
-from flow.driver import track_dense, track_sparse
 from flow.io.source import FrameSource
+from flow.measure.driver import track_dense, track_sparse
+from flow.measure.quality import measure
 from flow.methods.base import CROP_MARGIN_PX
 from flow.methods.klt import KLT
-from flow.quality import measure
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _fresh_python import run_fresh  # noqa: E402

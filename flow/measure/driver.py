@@ -8,7 +8,7 @@ through the sequence in order.
 
 Memory stays constant whatever the clip length: frames are streamed, and the
 per-POI tracks (``frames x POIs``, which eq. 10-12 need whole) go to a
-disk-backed :class:`~flow.storage.PoiStore` and are read back in blocks of frames.
+disk-backed :class:`~flow.measure.storage.PoiStore` and are read back in blocks of frames.
 """
 
 from __future__ import annotations
@@ -30,13 +30,13 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from flow.background import Background
-from flow.filtering import reference_offset
 from flow.io.errors import InputError
 from flow.io.source import FrameSource
-from flow.photometric import LucasKanadeSigma, mean_abs, photometric_residual, sample
-from flow.storage import PoiStore
-from flow.tracks import Tracks
+from flow.measure.background import Background
+from flow.measure.filtering import reference_offset
+from flow.measure.photometric import LucasKanadeSigma, mean_abs, photometric_residual, sample
+from flow.measure.storage import PoiStore
+from flow.measure.tracks import Tracks
 
 Undistort = Callable[[np.ndarray], np.ndarray] | None
 
