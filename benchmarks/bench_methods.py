@@ -28,9 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flow import registry  # noqa: E402
 from flow.io.source import FrameSource, Roi  # noqa: E402
 from flow.measure.driver import track_dense, track_sparse  # noqa: E402
+from flow.methods import registry  # noqa: E402
 
 FULL = (1280, 720)
 ROI = Roi(240, 160, 800, 400)

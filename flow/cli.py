@@ -24,13 +24,14 @@ from typing import Any
 
 import numpy as np
 
-from flow import pipeline, registry
+from flow import pipeline
 from flow.export import add_parser as add_export_parser
 from flow.gui import add_parser as add_gui_parser
 from flow.gui.project import PROJECT_HELP, expand_project_argv
 from flow.io.errors import InputError
 from flow.io.source import quiet_decoder_logs
 from flow.measure.quality import MAX_TYPICAL_SIGMA_PX
+from flow.methods import registry
 from flow.modal import add_parser as add_modal_parser
 from flow.options import (
     BackgroundOptions,

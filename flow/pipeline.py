@@ -21,10 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from flow import inputs, registry
+from flow import inputs
 from flow.io.errors import InputError
 from flow.io.source import FrameSource, check_fps
 from flow.measure.reference import check as check_reference
+from flow.methods import registry
 from flow.options import FilterOptions, FramesInfo, InputInfo, MergeOptions, RunInfo, TrackOptions
 from flow.scale import NO_SCALE_NOTE, Scale, check_scale_options, measurement_scale
 from flow.write import output_names, write_outputs

@@ -240,7 +240,7 @@ class App:
     # -- the project ------------------------------------------------------------------------
 
     def info(self) -> dict[str, Any]:
-        from flow import registry
+        from flow.methods import registry
 
         kinds, described = registry.kinds(), registry.describe()
         name = re.sub(r"[^A-Za-z0-9._-]", "_", self.video.stem)[:60].strip("._-")

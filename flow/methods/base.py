@@ -11,7 +11,7 @@ Every tracker is an interchangeable part behind one interface (after OpenCV's
 The reference-frame driver, POI sampling, filtering (paper eq. 10-12) and
 averaging are shared steps outside the methods. A method module imports this module
 (the base classes and ``@register``) and nothing else of the methods' plumbing;
-:mod:`flow.registry` loads the methods and answers for them.
+:mod:`flow.methods.registry` loads the methods and answers for them.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from flow.params import Param, check_params
+from flow.methods.params import Param, check_params
 
 
 class Method:
@@ -201,7 +201,7 @@ class SparseMethod(Method):
 
 
 # Declaring a method. The table lives here, next to the base classes, so that a method module
-# imports this module only: flow.registry loads the method modules and reads the table, and
+# imports this module only: flow.methods.registry loads the method modules and reads the table, and
 # nothing imports the registry back.
 
 @dataclass(frozen=True)
@@ -230,5 +230,5 @@ def register(name: str) -> Callable[[type], type]:
 
 def register_unavailable(name: str, reason: str) -> None:
     """Record that the method ``name`` cannot run here and why (a dependency is missing), for
-    :func:`flow.registry.unavailable`."""
+    :func:`flow.methods.registry.unavailable`."""
     _UNAVAILABLE[name] = reason

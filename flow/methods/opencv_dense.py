@@ -20,7 +20,7 @@ import numpy as np
 
 from flow.io.source import as_uint8
 from flow.methods.base import CROP, DenseMethod, register, register_unavailable
-from flow.params import Param
+from flow.methods.params import Param
 
 
 def _has_optflow() -> bool:

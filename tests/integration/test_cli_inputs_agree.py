@@ -37,7 +37,7 @@ def write_folder(folder: Path, first: np.ndarray | None = None, n: int = 5) -> P
 
 def _count_frames(monkeypatch) -> list[int]:
     """Every method built from now on appends to the returned list for each frame it measures."""
-    from flow import registry
+    from flow.methods import registry
 
     real_get, measured = registry.get_method, []
 

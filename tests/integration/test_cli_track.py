@@ -470,7 +470,7 @@ def test_failed_poi_tracks_leave_no_csv(clip, tmp_path, monkeypatch) -> None:
 def _at_sixth_frame(monkeypatch, action, counter: list | None = None) -> None:
     """Every method built from now on calls ``action()`` when its sixth frame is measured
     (and appends to ``counter`` for every frame)."""
-    from flow import registry
+    from flow.methods import registry
 
     real_get = registry.get_method
     calls = {"n": 0}

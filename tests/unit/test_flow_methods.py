@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flow import registry
 from flow.io.source import FrameSource
 from flow.measure.driver import track_dense, track_sparse
 from flow.measure.quality import measure
+from flow.methods import registry
 from flow.methods.base import CROP_MARGIN_PX
 from flow.methods.klt import KLT
 
@@ -64,7 +64,7 @@ def test_registry_says_why_a_method_is_unavailable() -> None:
     # dependency is missing): its methods are left out, the registry says why, and the CLI
     # falls back to deepflow-opencv with that reason, asking the registry only.
     code = ("import contextlib, io, json, sys\n"
-            "sys.modules['flow.variational'] = None\n"
+            "sys.modules['flow.methods.deepflow.variational'] = None\n"
             "from flow import cli, registry\n"
             "out = io.StringIO()\n"
             "with contextlib.redirect_stdout(out):\n    cli.main(['methods'])\n"
@@ -75,7 +75,7 @@ def test_registry_says_why_a_method_is_unavailable() -> None:
     names, missing, (default, note), listing = json.loads(run.stdout.splitlines()[-1])
     assert {"deepflow", "deepflow-dense", "deepmatching"} <= set(missing)
     assert "dis" in names and set(missing).isdisjoint(names)
-    assert "flow.variational" in missing["deepflow"]
+    assert "flow.methods.deepflow.variational" in missing["deepflow"]
     assert default == "deepflow-opencv" and f"({missing['deepflow']})" in note
     assert f"(deepflow unavailable: {missing['deepflow']})" in listing
 

@@ -1,7 +1,7 @@
 """``deepflow`` (DeepMatching + variational refinement) and ``deepmatching``.
 
 Both are clean-room implementations from the papers (see
-:mod:`flow.deepmatching` and :mod:`flow.variational`).
+:mod:`flow.methods.deepflow.deepmatching` and :mod:`flow.methods.deepflow.variational`).
 
 References
 ----------
@@ -18,13 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from flow.deepmatching import MatchParams, deep_matching, densify, search_radius
 from flow.measure.photometric import sample
-from flow.member import MemberEdges, MemberFit
 from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
-from flow.params import Param, declared, with_defaults
-from flow.regionfit import RegionFit, RegionMotion
-from flow.variational import VariationalParams, Workspace, refine
+from flow.methods.deepflow.deepmatching import MatchParams, deep_matching, densify, search_radius
+from flow.methods.deepflow.member import MemberEdges, MemberFit
+from flow.methods.deepflow.regionfit import RegionFit, RegionMotion
+from flow.methods.deepflow.variational import VariationalParams, Workspace, refine
+from flow.methods.params import Param, declared, with_defaults
 
 _MATCH_FIELDS = {f.name for f in dataclasses.fields(MatchParams)}
 _VAR_FIELDS = {f.name for f in dataclasses.fields(VariationalParams)}
@@ -290,10 +290,10 @@ class DeepFlow(DenseMethod):
     The dense flow (DeepMatching + DeepFlow) covers the POIs' window (see ``crop``) and starts
     two refinements of every region of the mask, each with its own assumptions:
 
-    * *texture* (:mod:`flow.regionfit`): the region as one image-correlation subset, an
+    * *texture* (:mod:`flow.methods.deepflow.regionfit`): the region as one image-correlation subset, an
       affine warp (translation, rotation, stretch, shear) with gain and offset fitted to all
       of its pixels; it needs texture inside the mask and nothing else;
-    * *outline* (:mod:`flow.member`): the member's edges against a background that stands
+    * *outline* (:mod:`flow.methods.deepflow.member`): the member's edges against a background that stands
       still; it needs a straight-edged member in front of a static background and nothing
       inside the mask.
 
@@ -308,8 +308,8 @@ class DeepFlow(DenseMethod):
     band. The sidecar counts the readings of each model (``<model>_readings``).
 
     Parameters (keyword-only; defaults follow the papers, see
-    :class:`flow.deepmatching.MatchParams` and
-    :class:`flow.variational.VariationalParams`)
+    :class:`flow.methods.deepflow.deepmatching.MatchParams` and
+    :class:`flow.methods.deepflow.variational.VariationalParams`)
     ----------
     preset : {"default", "fast", "large-displacement"}
     member : bool
@@ -549,7 +549,7 @@ class DeepMatchingDense(DenseMethod):
         Interpolation between atomic-patch centres.
     crop : bool
         Solve only around the pixels read (see :class:`DeepFlow`).
-    downscale, ngh_rad, max_patch, ... : see :class:`flow.deepmatching.MatchParams`.
+    downscale, ngh_rad, max_patch, ... : see :class:`flow.methods.deepflow.deepmatching.MatchParams`.
     """
 
     summary = "DeepMatching quasi-dense matches interpolated to a dense field"
