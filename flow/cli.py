@@ -26,7 +26,7 @@ import numpy as np
 
 from flow import pipeline
 from flow.export import add_parser as add_export_parser
-from flow.gui import add_parser as add_gui_parser
+from flow.gui.command import add_parser as add_gui_parser
 from flow.gui.project import PROJECT_HELP, expand_project_argv
 from flow.io.errors import InputError
 from flow.io.source import quiet_decoder_logs

@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from flow.gui import add_parser
 from flow.gui import project as projects
+from flow.gui.command import add_parser
 from flow.gui.paths import OutputFolder, PathRefused
 from flow.io.errors import InputError
 

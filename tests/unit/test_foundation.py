@@ -128,6 +128,51 @@ def test_flow_modules_import_in_no_circle():
     assert not circles, f"flow's modules import in a circle: {sorted(circles)}"
 
 
+# Issue 34: the layout shows the design. The readers (flow/io/), the measurement every method
+# shares (flow/measure/) and the methods (flow/methods/, one folder for a method with its own
+# kernels) are sub-packages; the application (CLI, pipeline, options, outputs, the other
+# commands, gui/) sits at the top and is the only part that sees them all.
+MAX_TOP_MODULES = 12
+MAX_INIT_LINES = 40
+# flow's sub-package -> the others it may import (nothing from the application at the top)
+LAYERS = {"io": set(), "measure": {"io"}, "methods": {"io", "measure"}}
+
+
+def test_flow_top_holds_the_application_only():
+    top = sorted(p.name for p in (ROOT / "flow").glob("*.py"))
+    assert len(top) <= MAX_TOP_MODULES, (
+        f"{len(top)} modules directly in flow/ (at most {MAX_TOP_MODULES}): {top}; a reader "
+        "belongs in flow/io/, a step of the measurement in flow/measure/, a method or its "
+        "kernels in flow/methods/")
+    packages = sorted(p.parent.name for p in (ROOT / "flow").glob("*/__init__.py"))
+    assert {"io", "measure", "methods", "gui"} <= set(packages), packages
+
+
+def test_flow_inits_are_short():
+    # A package's __init__ says what is inside; code lives in its modules.
+    long = {str(p.relative_to(ROOT)): n for p in sorted((ROOT / "flow").rglob("__init__.py"))
+            if (n := len(p.read_text().splitlines())) > MAX_INIT_LINES}
+    assert not long, f"__init__.py over {MAX_INIT_LINES} lines: {long}"
+
+
+def _part(module: str) -> str:
+    """The sub-package of LAYERS a module of flow belongs to, else "application"."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[1] in LAYERS else "application"
+
+
+def test_flow_sub_packages_import_only_the_layers_below():
+    # Even from inside a function: the readers know nothing of the measurement, the
+    # measurement nothing of a method (the driver gets one as an argument), and none of
+    # them anything of the application above them.
+    graph = _flow_import_graph(deferred=True)
+    crossing = sorted(f"{module} -> {target}" for module, targets in graph.items()
+                      if _part(module) in LAYERS for target in targets
+                      if target != "flow" and _part(target) != _part(module)
+                      and _part(target) not in LAYERS[_part(module)])
+    assert not crossing, f"imports against the layers {LAYERS}: {crossing}"
+
+
 def test_registry_and_methods_import_in_no_circle_even_on_demand():
     # STYLE.md "Base classes apart from the registry": a method module imports the base, the
     # registry loads the methods (on first use) and imports the base; neither way back, not
