@@ -29,7 +29,7 @@ from flow.export import add_parser as add_export_parser
 from flow.gui.command import add_parser as add_gui_parser
 from flow.gui.project import PROJECT_HELP, expand_project_argv
 from flow.io.errors import InputError
-from flow.io.source import quiet_decoder_logs
+from flow.io.video import quiet_decoder_logs
 from flow.measure.quality import MAX_TYPICAL_SIGMA_PX
 from flow.methods import registry
 from flow.modal import add_parser as add_modal_parser

@@ -485,7 +485,7 @@ def reference_backdrop(csv_path: Path, points: list[dict[str, Any]]) -> tuple[np
     if calibration and list(calibration.get("video_origin", [0, 0])) != [0, 0]:
         return None, "the run's video is a window of the calibrated sensor (--video-origin)"
     from flow import inputs
-    from flow.io.source import as_uint8
+    from flow.io.frames import as_uint8
     from flow.options import SourceOptions
 
     try:

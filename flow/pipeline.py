@@ -23,7 +23,7 @@ import numpy as np
 
 from flow import inputs
 from flow.io.errors import InputError
-from flow.io.source import FrameSource, check_fps
+from flow.io.frames import FrameSource, check_fps
 from flow.measure.reference import check as check_reference
 from flow.methods import registry
 from flow.options import FilterOptions, FramesInfo, InputInfo, MergeOptions, RunInfo, TrackOptions

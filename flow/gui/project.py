@@ -176,7 +176,7 @@ def _roi(value: Any) -> list[int] | None:
     if value in (None, "", []):
         return None
     text = ",".join(map(_text, value)) if isinstance(value, list | tuple) else str(value)
-    from flow.io.source import Roi
+    from flow.io.frames import Roi
 
     roi = Roi.parse(text.replace(" ", ""))  # the CLI's message for anything but four integers
     return [roi.x, roi.y, roi.width, roi.height]

@@ -46,7 +46,8 @@ import numpy as np
 from flow.gui import project as projects
 from flow.gui.paths import OutputFolder, PathRefused
 from flow.io.errors import InputError
-from flow.io.source import FrameSource
+from flow.io.frames import FrameSource
+from flow.io.source import open_source
 
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                 ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml", ".png": "image/png"}
@@ -110,7 +111,7 @@ class Frames:
     def jpeg(self, index: int) -> bytes | None:
         import cv2
 
-        from flow.io.source import as_uint8
+        from flow.io.frames import as_uint8
 
         with self.lock:
             if index in self.cache:
@@ -221,7 +222,7 @@ class App:
         from flow.io.camfiles import companion_files
 
         self.video = Path(video)
-        self.source = FrameSource(self.video, fps=fps, require_fps=False, allow_truncated=True)
+        self.source = open_source(self.video, fps=fps, require_fps=False, allow_truncated=True)
         self.fps, self.calibration = fps, (str(Path(calibration).resolve()) if calibration else None)
         self.undistort_points = None
         if calibration:
@@ -508,7 +509,7 @@ def write_mask(path: Path, regions: list[dict[str, Any]], frame_size: tuple[int,
     """A full-frame mask PNG (white inside any region), drawn by the tool's ``--polygon``."""
     import cv2
 
-    from flow.io.source import Roi
+    from flow.io.frames import Roi
     from flow.measure import poi
     from refflow.io import atomic_path
 

@@ -31,7 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 from flow.io.errors import InputError
-from flow.io.source import FrameSource
+from flow.io.frames import FrameSource
 from flow.measure.background import Background
 from flow.measure.filtering import reference_offset
 from flow.measure.photometric import LucasKanadeSigma, mean_abs, photometric_residual, sample

@@ -8,8 +8,9 @@ import cv2
 import numpy as np
 
 from flow.io.errors import InputError
+from flow.io.frames import Roi
 from flow.io.imagefiles import read_image
-from flow.io.source import DISPLAY_ROTATIONS, Roi
+from flow.io.video import DISPLAY_ROTATIONS
 
 
 def mask_labels(image: np.ndarray) -> np.ndarray:

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from flow.io.errors import InputError
-from flow.io.source import FrameSource
+from flow.io.frames import FrameSource
 
 # The surroundings: the mask grown by this many pixels, or by this share of its larger side.
 NEAR_PX = 16

@@ -40,7 +40,7 @@ class Method:
     summary: str = ""
     parameters: tuple[Param, ...] = ()
     # False for methods built on OpenCV functions that take 8-bit images only: they see
-    # 10-16-bit data rounded to 8 bits (``flow.io.source.as_uint8``).
+    # 10-16-bit data rounded to 8 bits (``flow.io.frames.as_uint8``).
     full_depth = True
 
     def __init__(self, **params: Any) -> None:

@@ -18,7 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.io.source import as_uint8
+from flow.io.frames import as_uint8
 from flow.methods.base import CROP, DenseMethod, register, register_unavailable
 from flow.methods.params import Param
 

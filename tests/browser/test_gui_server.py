@@ -285,7 +285,7 @@ def test_saved_project_mask_and_the_cli_messages(served, tmp_path) -> None:
     assert saved["command"] == projects.command_line(projects.track_argv(out / "band_project.json"))
     assert saved["project_command"] == f"refflow track --project {out / 'band_project.json'}"
     mask = cv2.imread(str(out / "band_mask.png"), cv2.IMREAD_GRAYSCALE)
-    from flow.io.source import Roi
+    from flow.io.frames import Roi
     from flow.measure.poi import polygon_mask
 
     expected = polygon_mask("10,20,80,20,80,44,10,44", roi=Roi(0, 0, W, H))

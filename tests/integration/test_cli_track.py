@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from flow.cli import main
-from flow.io.source import DEEP_TARGET_LEVEL
+from flow.io.frames import DEEP_TARGET_LEVEL
 
 W, H, N = 160, 120, 30
 OCCLUDED = range(12, 17)

@@ -201,7 +201,7 @@ def test_registry_and_methods_import_in_any_order(order):
 
     code = ("import importlib\n"
             f"for name in {order!r}:\n    importlib.import_module(name)\n"
-            "from flow import registry\nprint(','.join(registry.available()))\n")
+            "from flow.methods import registry\nprint(','.join(registry.available()))\n")
     run = run_fresh(code)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == [",".join(registry.available())]
