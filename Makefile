@@ -44,7 +44,7 @@ $(STAMP): pyproject.toml requirements.lock
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet -c requirements.lock -e '.[test]'
 	@echo "compiling the numba kernels of refflow's default method (once, about 30 s)"
-	$(BIN)/python -c "from flow.methods.deepflow import compile_kernels; compile_kernels()"
+	$(BIN)/python -c "from flow.methods.deepflow.method import compile_kernels; compile_kernels()"
 	touch $(STAMP)
 
 # Pin what .venv has now (run after a deliberate upgrade, then `make all` to regenerate results/).

@@ -49,8 +49,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from flow import registry  # noqa: E402
-from flow.member import MemberParams, _grow  # noqa: E402
+from flow.methods import registry  # noqa: E402
+from flow.methods.deepflow.member import MemberParams, _grow  # noqa: E402
 
 BENCH = ROOT.parent / "shared" / "bench"
 REAL = ROOT.parent / "shared" / "data" / "real"

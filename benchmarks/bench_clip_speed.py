@@ -2,7 +2,7 @@
 DeepFlow and DIS on the same clips, the same cores and the same --jobs, in one run.
 
 A video is not a set of unrelated pairs: `deepflow` measures each chain's first frame in full
-and tracks the member through the rest (see `flow.methods.deepflow`), so its speed is a
+and tracks the member through the rest (see `flow.methods.deepflow.method`), so its speed is a
 property of the clip, not of one pair (`bench_deepflow.py` keeps the pair-wise comparison).
 Each method runs `refflow track CLIP --mask MASK --mm-per-px 1 --jobs J` in its own process,
 one after the other; the table gives frames per second of the frame loop (the sidecar's

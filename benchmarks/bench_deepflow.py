@@ -72,7 +72,7 @@ def _worker(method: str, width: int, height: int, frames: int, preset: str = "de
         def calc():
             return engine.calc(reference, current, None)
     else:
-        import flow.methods.deepflow as deepflow_module
+        import flow.methods.deepflow.method as deepflow_module
 
         engine = deepflow_module.DeepFlow(preset=preset)
 
@@ -97,8 +97,8 @@ def _worker(method: str, width: int, height: int, frames: int, preset: str = "de
     }
     if method == "ours":
         # Where the time goes: matching vs variational, one more frame.
-        from flow.deepmatching import deep_matching, densify
-        from flow.variational import refine
+        from flow.methods.deepflow.deepmatching import deep_matching, densify
+        from flow.methods.deepflow.variational import refine
 
         t0 = time.perf_counter()
         grid = deep_matching(reference, current, engine._match)
@@ -130,7 +130,7 @@ def _interleaved_times(
     sys.path.insert(0, str(ROOT))
     import cv2
 
-    import flow.methods.deepflow as deepflow_module
+    import flow.methods.deepflow.method as deepflow_module
 
     reference, current = _pair(width, height)
     threads_before = cv2.getNumThreads()
@@ -173,7 +173,7 @@ def _throughput(
 
     import cv2
 
-    import flow.methods.deepflow as deepflow_module
+    import flow.methods.deepflow.method as deepflow_module
 
     reference, current = _pair(width, height)
     threads_before = cv2.getNumThreads()

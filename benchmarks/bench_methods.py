@@ -1,6 +1,6 @@
 """Frames per second per method on an 800x400 ROI, and the speed-up of --jobs 2 over --jobs 1.
 
-Runs the real driver (`flow.driver`) on a synthetic image folder of a textured band
+Runs the real driver (`flow.measure.driver`) on a synthetic image folder of a textured band
 moving sub-pixel. Only the frame loop is timed (decoding, ROI cropping, flow, POI
 sampling, residuals): reading the reference frame and building the methods are setup,
 and a warm-up run first compiles what numba compiles.
@@ -28,9 +28,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flow import registry  # noqa: E402
-from flow.driver import track_dense, track_sparse  # noqa: E402
-from flow.io import FrameSource, Roi  # noqa: E402
+from flow.io.frames import Roi  # noqa: E402
+from flow.io.source import open_source
+from flow.measure.driver import track_dense, track_sparse  # noqa: E402
+from flow.methods import registry  # noqa: E402
 
 FULL = (1280, 720)
 ROI = Roi(240, 160, 800, 400)
@@ -49,7 +50,7 @@ def make_frames(folder: Path, n_frames: int) -> None:
 
 def run(folder: Path, name: str, n_frames: int, jobs: int) -> float:
     """Frames per second of the frame loop alone."""
-    source = FrameSource(folder, roi=ROI, fps=30.0)
+    source = open_source(folder, roi=ROI, fps=30.0)
     mask = np.zeros((ROI.height, ROI.width), bool)
     mask[100:300, 50:750] = True
     poi_xy = np.stack(np.nonzero(mask)[::-1], axis=1)[::4].astype(np.int32)

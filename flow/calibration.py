@@ -17,8 +17,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.io import FrameSource, InputError, Roi, as_uint8
-from flow.jsonfiles import json_number, load_json, shown
+from flow.io.errors import InputError
+from flow.io.frames import Roi, as_uint8
+from flow.io.jsonfiles import json_number, load_json, shown
+from flow.io.source import open_source
 
 
 def board_points(cols: int, rows: int, square_mm: float) -> np.ndarray:
@@ -121,7 +123,7 @@ def calibrate(source: str | Path, *, board: tuple[int, int], square_mm: float,
     if step < 1:
         raise InputError(f"--step {step} must be >= 1")
     # A cut calibration video still holds good views: use the ones that decode.
-    frames = FrameSource(source, require_fps=False, allow_truncated=True)
+    frames = open_source(source, require_fps=False, allow_truncated=True)
     obj = board_points(*board, square_mm)
     image_points = []
     with warnings.catch_warnings(record=True) as caught:

@@ -24,11 +24,14 @@ from typing import Any
 
 import numpy as np
 
-from flow import pipeline, registry
+from flow import pipeline
 from flow.export import add_parser as add_export_parser
-from flow.gui import add_parser as add_gui_parser
+from flow.gui.command import add_parser as add_gui_parser
 from flow.gui.project import PROJECT_HELP, expand_project_argv
-from flow.io import InputError, quiet_decoder_logs
+from flow.io.errors import InputError
+from flow.io.video import quiet_decoder_logs
+from flow.measure.quality import MAX_TYPICAL_SIGMA_PX
+from flow.methods import registry
 from flow.modal import add_parser as add_modal_parser
 from flow.options import (
     BackgroundOptions,
@@ -41,7 +44,6 @@ from flow.options import (
     TrackOptions,
 )
 from flow.outputs import IMAGE_SUFFIXES, PLOT_SUFFIXES, check_outputs, check_suffix, claimed
-from flow.quality import MAX_TYPICAL_SIGMA_PX
 from flow.scale import positive
 from refflow.io import versions, write_json
 
@@ -167,9 +169,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_pois(args: argparse.Namespace) -> int:
-    from flow import inputs, poi
-    from flow.driver import read_reference
+    from flow import inputs
     from flow.figures import poi_figure
+    from flow.measure import poi
+    from flow.measure.driver import read_reference
     from flow.methods.klt import KLT
 
     out = Path(args.out)

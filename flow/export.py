@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from flow.errors import InputError
 from flow.figures import read_measurements, resample_uniform
+from flow.io.errors import InputError
 from flow.outputs import check_outputs
 from refflow.io import atomic_path
 

@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from flow.io import InputError, as_uint8
+from flow.io.errors import InputError
+from flow.io.frames import as_uint8
 from refflow import trackcsv
 from refflow.figures import poi_figure as draw_poi_figure
 from refflow.figures import region_colour  # noqa: F401  (flow.modal's figures)

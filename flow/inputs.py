@@ -13,14 +13,16 @@ from typing import Any
 
 import numpy as np
 
-from flow.io import FrameSource, InputError, Roi
-from flow.jsonfiles import load_json, shown
+from flow.io import source as sources
+from flow.io.errors import InputError
+from flow.io.frames import FrameSource, Roi
+from flow.io.jsonfiles import load_json, shown
 from flow.options import BackgroundOptions, RegionOptions, SourceOptions
 
 
 def open_source(options: SourceOptions, *, need_time: bool = True) -> FrameSource:
     roi = Roi.parse(options.roi) if options.roi else None
-    return FrameSource(options.input, roi=roi, fps=options.fps, require_fps=need_time,
+    return sources.open_source(options.input, roi=roi, fps=options.fps, require_fps=need_time,
                        allow_truncated=options.allow_truncated)
 
 
@@ -91,7 +93,7 @@ def poi_labels(options: RegionOptions, source: FrameSource, undistort: Any) -> n
     Regions: a labelled mask PNG (grey values 1..N), or several masks (one region each,
     or their labels in turn).
     """
-    from flow import poi
+    from flow.measure import poi
 
     given = [a for a in (options.masks, options.rect, options.polygon) if a]
     if len(given) != 1:
@@ -131,7 +133,7 @@ def measured_regions(labels: np.ndarray, poi_xy: np.ndarray, grid_step: int) -> 
 
 def mask_cut_by_roi(options: RegionOptions, source: FrameSource, notes: list[str], command: str) -> int:
     """Pixels of full-frame masks that the ROI leaves out; warns (and notes) when any."""
-    from flow import poi
+    from flow.measure import poi
 
     outside = sum(poi.pixels_outside_roi(path, frame_size=source.size, roi=source.roi)
                   for path in options.masks)
@@ -146,8 +148,8 @@ def mask_cut_by_roi(options: RegionOptions, source: FrameSource, notes: list[str
 def background_for(options: BackgroundOptions, source: FrameSource, undistort: Any,
                    poi_mask: np.ndarray) -> Any:
     """The static points of the background mask or rectangle (None without them)."""
-    from flow import poi
-    from flow.background import Background
+    from flow.measure import poi
+    from flow.measure.background import Background
 
     if options.mask and options.rect:
         raise InputError("pass one of --background-mask and --background-rect, not both")

@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from flow.errors import InputError
 from flow.figures import dominant_frequency, read_measurements, resample_uniform
+from flow.io.errors import InputError
 from flow.outputs import check_outputs
 from refflow.io import atomic_paths, finite_or_none, json_text, versions
 
@@ -485,7 +485,7 @@ def reference_backdrop(csv_path: Path, points: list[dict[str, Any]]) -> tuple[np
     if calibration and list(calibration.get("video_origin", [0, 0])) != [0, 0]:
         return None, "the run's video is a window of the calibrated sensor (--video-origin)"
     from flow import inputs
-    from flow.io import as_uint8
+    from flow.io.frames import as_uint8
     from flow.options import SourceOptions
 
     try:

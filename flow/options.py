@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from flow.camfiles import companion_files
-from flow.quality import MAX_TYPICAL_SIGMA_PX
+from flow.io.camfiles import companion_files
+from flow.measure.quality import MAX_TYPICAL_SIGMA_PX
 from refflow.io import versions
 
 

@@ -9,7 +9,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from flow.errors import InputError
+from flow.io.errors import InputError
 
 
 def check_outputs(outputs: list[Path], inputs: list[tuple[str, Path]], *, option: str = "--out") -> None:

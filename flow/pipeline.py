@@ -4,7 +4,7 @@ mask (labelled regions) and background, scale, track, measure, write.
 :func:`track` is ``refflow track``; :func:`merge` joins the raw-tracks parts of one run
 (``refflow merge``) through the same scale (:func:`flow.scale.measurement_scale`) and the same
 writer. Both take the typed options of :mod:`flow.options` and refuse bad input with
-:class:`flow.errors.InputError` before any frame is read where they can; notes and warnings
+:class:`flow.io.errors.InputError` before any frame is read where they can; notes and warnings
 the user should see go to stderr as they happen.
 """
 
@@ -21,11 +21,12 @@ from typing import Any
 
 import numpy as np
 
-from flow import inputs, registry
-from flow.errors import InputError
-from flow.io import FrameSource, check_fps
+from flow import inputs
+from flow.io.errors import InputError
+from flow.io.frames import FrameSource, check_fps
+from flow.measure.reference import check as check_reference
+from flow.methods import registry
 from flow.options import FilterOptions, FramesInfo, InputInfo, MergeOptions, RunInfo, TrackOptions
-from flow.reference import check as check_reference
 from flow.scale import NO_SCALE_NOTE, Scale, check_scale_options, measurement_scale
 from flow.write import output_names, write_outputs
 from refflow.io import finite_or_none
@@ -172,7 +173,7 @@ def track(options: TrackOptions) -> Outcome:
 
 def _for_source(name: str, params: dict[str, Any], method: Any, source: Any) -> tuple[dict[str, Any], Any]:
     """A method's parameters that depend on the input, resolved from it where the user left them
-    (``bias_correction``: on for lossless frames only, see :attr:`flow.io.FrameSource.lossless`),
+    (``bias_correction``: on for lossless frames only, see :attr:`flow.io.frames.FrameSource.lossless`),
     and the method built with them; the sidecar records the value taken."""
     declared = {param.name for param in getattr(method, "parameters", ())}
     if "bias_correction" not in declared or params.get("bias_correction") is not None:
@@ -226,7 +227,7 @@ def _check_method_fits(options: TrackOptions, name: str, sparse: bool, frames: t
 
 def _set_up(options: TrackOptions, notes: list[str], name: str, sparse: bool) -> _Setup:
     """Open the source, undistort, scale, mask and background, in this order."""
-    from flow import poi
+    from flow.measure import poi
 
     source = inputs.open_source(options.source)
     undistort, calibration = inputs.undistorter(options.source, source)
@@ -247,7 +248,7 @@ def _set_up(options: TrackOptions, notes: list[str], name: str, sparse: bool) ->
 def _track_frames(options: TrackOptions, setup: _Setup, method: Any, new_method: Any, sparse: bool, jobs: int,
                   frames: tuple[int, int | None] | None, notes: list[str]) -> Any:
     """The unfiltered tracks; the source's notes and the warnings raised meanwhile join ``notes``."""
-    from flow import driver
+    from flow.measure import driver
 
     # The per-POI store goes beside the output: a real disk, unlike a memory-backed /tmp.
     store_dir = Path(options.outputs.csv or options.outputs.raw_tracks).resolve().parent
@@ -320,7 +321,7 @@ def _poi_info(setup: _Setup, tracks: Any, sparse: bool, grid_step: int) -> dict[
 def merge(options: MergeOptions) -> tuple[int, Outcome]:
     """Join raw-tracks parts of one run into one measurement; returns the number of parts
     and what was measured."""
-    from flow import formats
+    from flow.measure import formats
 
     started = time.perf_counter()
     check_scale_options(options.scale)

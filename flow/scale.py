@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
 
-from flow.errors import InputError
-from flow.jsonfiles import json_number, load_json, shown
+from flow.io.errors import InputError
+from flow.io.jsonfiles import json_number, load_json, shown
 from flow.options import ScaleOptions
 
 # No camera images a structure at a kilometre per pixel: a larger scale is a typing error

@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from flow.measure.quality import MAX_SIGMA_TO_RANGE
 from flow.options import FilterOptions, OutputOptions, RunInfo
 from flow.outputs import check_outputs, check_sidecar, writing
-from flow.quality import MAX_SIGMA_TO_RANGE
 from flow.scale import Scale
 from refflow import trackcsv
 from refflow.io import atomic_paths, finite_or_none, json_text, versions
@@ -34,7 +34,7 @@ def output_names(outputs: OutputOptions, inputs: list[tuple[str, Path]]) -> list
 
 def measure_regions(tracks: Any, filtering: FilterOptions, sparse: bool) -> tuple[str, list[tuple[int, Any]]]:
     """The filter mode used and each region's ``(label, Measurement)``."""
-    from flow import quality
+    from flow.measure import quality
 
     mode = filtering.mode or ("none" if sparse else "paper")
     results = [(label, quality.measure(tracks.select(label), filter_enabled=mode != "none",
@@ -69,7 +69,7 @@ def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list
     A run of several regions filters and averages each on its own and writes one row per
     frame and region.
     """
-    from flow import formats
+    from flow.measure import formats
 
     results: list[tuple[int, Any]] = []
     sidecar_text = ""
@@ -111,7 +111,7 @@ def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list
 
 def _write_poi_tracks(path: Path, tracks: Any, results: list[tuple[int, Any]], roi: dict[str, int]) -> None:
     """The per-POI displacements with each POI's filter verdict (``--save-poi-tracks``)."""
-    from flow import storage
+    from flow.measure import storage
 
     multi = tracks.region is not None
     kept = np.zeros(len(tracks.x_px), bool)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from flow.io import InputError
+from flow.io.errors import InputError
 
 
 class PathRefused(InputError):

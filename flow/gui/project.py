@@ -28,9 +28,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from flow.io import InputError
-from flow.jsonfiles import load_json
-from flow.quality import MAX_TYPICAL_SIGMA_PX
+from flow.io.errors import InputError
+from flow.io.jsonfiles import load_json
+from flow.measure.quality import MAX_TYPICAL_SIGMA_PX
 
 FORMAT = "refflow-project/1"
 
@@ -176,7 +176,7 @@ def _roi(value: Any) -> list[int] | None:
     if value in (None, "", []):
         return None
     text = ",".join(map(_text, value)) if isinstance(value, list | tuple) else str(value)
-    from flow.io import Roi
+    from flow.io.frames import Roi
 
     roi = Roi.parse(text.replace(" ", ""))  # the CLI's message for anything but four integers
     return [roi.x, roi.y, roi.width, roi.height]

@@ -45,7 +45,9 @@ import numpy as np
 
 from flow.gui import project as projects
 from flow.gui.paths import OutputFolder, PathRefused
-from flow.io import FrameSource, InputError
+from flow.io.errors import InputError
+from flow.io.frames import FrameSource
+from flow.io.source import open_source
 
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                 ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml", ".png": "image/png"}
@@ -109,7 +111,7 @@ class Frames:
     def jpeg(self, index: int) -> bytes | None:
         import cv2
 
-        from flow.io import as_uint8
+        from flow.io.frames import as_uint8
 
         with self.lock:
             if index in self.cache:
@@ -217,10 +219,10 @@ class App:
 
     def __init__(self, video: str | Path, out_dir: str | Path, *, fps: float | None = None,
                  calibration: str | Path | None = None) -> None:
-        from flow.camfiles import companion_files
+        from flow.io.camfiles import companion_files
 
         self.video = Path(video)
-        self.source = FrameSource(self.video, fps=fps, require_fps=False, allow_truncated=True)
+        self.source = open_source(self.video, fps=fps, require_fps=False, allow_truncated=True)
         self.fps, self.calibration = fps, (str(Path(calibration).resolve()) if calibration else None)
         self.undistort_points = None
         if calibration:
@@ -239,7 +241,7 @@ class App:
     # -- the project ------------------------------------------------------------------------
 
     def info(self) -> dict[str, Any]:
-        from flow import registry
+        from flow.methods import registry
 
         kinds, described = registry.kinds(), registry.describe()
         name = re.sub(r"[^A-Za-z0-9._-]", "_", self.video.stem)[:60].strip("._-")
@@ -507,8 +509,8 @@ def write_mask(path: Path, regions: list[dict[str, Any]], frame_size: tuple[int,
     """A full-frame mask PNG (white inside any region), drawn by the tool's ``--polygon``."""
     import cv2
 
-    from flow import poi
-    from flow.io import Roi
+    from flow.io.frames import Roi
+    from flow.measure import poi
     from refflow.io import atomic_path
 
     width, height = frame_size

@@ -11,7 +11,7 @@ Every tracker is an interchangeable part behind one interface (after OpenCV's
 The reference-frame driver, POI sampling, filtering (paper eq. 10-12) and
 averaging are shared steps outside the methods. A method module imports this module
 (the base classes and ``@register``) and nothing else of the methods' plumbing;
-:mod:`flow.registry` loads the methods and answers for them.
+:mod:`flow.methods.registry` loads the methods and answers for them.
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from flow.params import Param, check_params
+from flow.measure.window import bounding_box, box_window
+from flow.methods.params import Param, check_params
 
 
 class Method:
@@ -40,7 +41,7 @@ class Method:
     summary: str = ""
     parameters: tuple[Param, ...] = ()
     # False for methods built on OpenCV functions that take 8-bit images only: they see
-    # 10-16-bit data rounded to 8 bits (``flow.io.as_uint8``).
+    # 10-16-bit data rounded to 8 bits (``flow.io.frames.as_uint8``).
     full_depth = True
 
     def __init__(self, **params: Any) -> None:
@@ -59,38 +60,6 @@ CROP = Param("crop", "bool", True, "solve only around the pixels read (their bou
 # this margin: room for the pyramid's coarse levels and the smoothing to settle before the POIs
 # (and for a matching's search, which may ask for more; see :meth:`DenseMethod.window_margin`).
 CROP_MARGIN_PX = 64
-# A window covering more than this share of the frame is not worth cutting out.
-CROP_MAX_SHARE = 0.8
-
-
-def bounding_box(needed: np.ndarray) -> tuple[int, int, int, int] | None:
-    """``(first row, last row, first column, last column)`` of the True pixels (None: none)."""
-    rows = np.flatnonzero(needed.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(needed.any(axis=0))
-    return int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
-
-
-def crop_window(shape: tuple[int, int], needed: np.ndarray, margin: int) -> tuple[slice, slice] | None:
-    """Rows and columns of the bounding box of ``needed`` grown by ``margin`` px and clipped to
-    the frame; None where it would cover most of the frame anyway (or nothing is needed)."""
-    return box_window(shape, bounding_box(needed), margin)
-
-
-def box_window(shape: tuple[int, int], box: tuple[int, int, int, int] | None,
-               margin: int) -> tuple[slice, slice] | None:
-    """:func:`crop_window` of a bounding box (:func:`bounding_box`)."""
-    if box is None:
-        return None
-    height, width = shape
-    r0, r1 = max(box[0] - margin, 0), min(box[1] + margin + 1, height)
-    c0, c1 = max(box[2] - margin, 0), min(box[3] + margin + 1, width)
-    if (r1 - r0) * (c1 - c0) > CROP_MAX_SHARE * height * width:
-        return None
-    return slice(r0, r1), slice(c0, c1)
-
-
 class DenseMethod(Method):
     """Base class of dense reference-frame methods: implement :meth:`_solve`.
 
@@ -234,7 +203,7 @@ class SparseMethod(Method):
 
 
 # Declaring a method. The table lives here, next to the base classes, so that a method module
-# imports this module only: flow.registry loads the method modules and reads the table, and
+# imports this module only: flow.methods.registry loads the method modules and reads the table, and
 # nothing imports the registry back.
 
 @dataclass(frozen=True)
@@ -263,5 +232,5 @@ def register(name: str) -> Callable[[type], type]:
 
 def register_unavailable(name: str, reason: str) -> None:
     """Record that the method ``name`` cannot run here and why (a dependency is missing), for
-    :func:`flow.registry.unavailable`."""
+    :func:`flow.methods.registry.unavailable`."""
     _UNAVAILABLE[name] = reason

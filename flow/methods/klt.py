@@ -21,9 +21,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.io import as_uint8
+from flow.io.frames import as_uint8
 from flow.methods.base import SparseMethod, register
-from flow.params import Param
+from flow.methods.params import Param
 
 _KLT_DEFAULTS = dict(detector="harris", max_corners=200, quality_level=0.01, min_distance=5,
                      block_size=5, window=21, levels=3, use_mask=False)

@@ -18,9 +18,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from flow.io import as_uint8
+from flow.io.frames import as_uint8
 from flow.methods.base import CROP, DenseMethod, register, register_unavailable
-from flow.params import Param
+from flow.methods.params import Param
 
 
 def _has_optflow() -> bool:

@@ -16,10 +16,10 @@ import cv2
 import numpy as np
 import pytest
 
-from flow.gui import add_parser
 from flow.gui import project as projects
+from flow.gui.command import add_parser
 from flow.gui.paths import OutputFolder, PathRefused
-from flow.io import InputError
+from flow.io.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[2]
 CLIP = ROOT / ".." / "shared" / "data" / "tacoma_bridge.mp4"
@@ -285,8 +285,8 @@ def test_saved_project_mask_and_the_cli_messages(served, tmp_path) -> None:
     assert saved["command"] == projects.command_line(projects.track_argv(out / "band_project.json"))
     assert saved["project_command"] == f"refflow track --project {out / 'band_project.json'}"
     mask = cv2.imread(str(out / "band_mask.png"), cv2.IMREAD_GRAYSCALE)
-    from flow.io import Roi
-    from flow.poi import polygon_mask
+    from flow.io.frames import Roi
+    from flow.measure.poi import polygon_mask
 
     expected = polygon_mask("10,20,80,20,80,44,10,44", roi=Roi(0, 0, W, H))
     assert mask.shape == (H, W) and np.array_equal(mask > 127, expected)

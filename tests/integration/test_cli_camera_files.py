@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from flow.camfiles import open_camera_file
 from flow.cli import main
+from flow.io.camera import open_camera_file
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 CIH, CINE = DATA / "data_showcase.cih", DATA / "data_small_cine.cine"

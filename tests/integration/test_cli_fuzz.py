@@ -97,7 +97,7 @@ def test_a_parameter_outside_its_range_is_refused_before_any_frame(frames, tmp_p
     parameter, a value outside the declared range (`refflow methods --params NAME`) is one
     line at once, naming the parameter and pointing at the list; each example is bounded in
     time (the deadline), and no file is written."""
-    from flow import registry
+    from flow.methods import registry
 
     numeric = [(name, p) for name in registry.available() for p in registry.parameters(name)
                if p.kind in ("int", "float")]

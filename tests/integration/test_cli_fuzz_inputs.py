@@ -65,9 +65,9 @@ def _check_outcome(rc: int, err: str, out) -> None:
        offset=st.floats(-150, 300), noise=st.sampled_from([0.0, 0.5, 1.0, 3.0]), seed=st.integers(0, 3))
 def test_any_reference_content_measures_or_refuses_naming_a_usable_frame(tmp_path_factory, later_frames, gain,
                                                                          offset, noise, seed) -> None:
-    from flow import poi
-    from flow.io import Roi
-    from flow.reference import problem, surroundings
+    from flow.io.frames import Roi
+    from flow.measure import poi
+    from flow.measure.reference import problem, surroundings
 
     folder = tmp_path_factory.mktemp("reference")
     rng = np.random.default_rng(seed)

@@ -37,7 +37,7 @@ def write_folder(folder: Path, first: np.ndarray | None = None, n: int = 5) -> P
 
 def _count_frames(monkeypatch) -> list[int]:
     """Every method built from now on appends to the returned list for each frame it measures."""
-    from flow import registry
+    from flow.methods import registry
 
     real_get, measured = registry.get_method, []
 
@@ -136,7 +136,7 @@ def test_a_plain_member_with_an_outline_is_accepted(tmp_path) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit"))
     from _lowtex_clip import make_clip
 
-    from flow.reference import problem, surroundings
+    from flow.measure.reference import problem, surroundings
 
     clip = make_clip(frames=2, texture=0.0, height=80, width=120, bar_width=24)
     near = surroundings(clip.mask)

@@ -47,7 +47,7 @@ def one_error(capsys) -> str:
 
 def never_measured(monkeypatch) -> None:
     """Make measuring a frame fail the test: the refusal must come first."""
-    from flow import driver
+    from flow.measure import driver
 
     def measured(*args, **kwargs):
         raise AssertionError("a frame was measured before the refusal")
@@ -74,7 +74,7 @@ def test_a_full_disk_names_the_file_that_could_not_be_written(frames, tmp_path, 
                                                               failing) -> None:
     """ENOSPC carries no file name (the message was 'No space left on device:  (check the
     path and permissions)'): the line names the output, not its temporary, and nothing stays."""
-    from flow import formats
+    from flow.measure import formats
     from refflow import trackcsv
 
     def full(*args, **kwargs):
@@ -97,7 +97,7 @@ def test_a_full_disk_names_the_file_that_could_not_be_written(frames, tmp_path, 
 
 
 def test_a_full_disk_while_measuring_names_the_store_folder(frames, tmp_path, monkeypatch, capsys) -> None:
-    from flow import storage
+    from flow.measure import storage
 
     def full(self, dx, dy):
         with self._named():

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from flow.cli import main
-from flow.quality import MAX_SIGMA_TO_RANGE
+from flow.measure.quality import MAX_SIGMA_TO_RANGE
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "unit"))
 from _lowtex_clip import encode, make_clip  # noqa: E402

@@ -18,7 +18,7 @@ import pytest
 
 from flow.cli import main
 from flow.figures import read_measurements
-from flow.quality import MAX_SIGMA_TO_RANGE, MAX_TYPICAL_SIGMA_PX
+from flow.measure.quality import MAX_SIGMA_TO_RANGE, MAX_TYPICAL_SIGMA_PX
 
 ROOT = Path(__file__).resolve().parents[2]
 CLIP = ROOT / ".." / "shared" / "data" / "tacoma_bridge.mp4"

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from flow.cli import main
-from flow.io import DEEP_TARGET_LEVEL
+from flow.io.frames import DEEP_TARGET_LEVEL
 
 W, H, N = 160, 120, 30
 OCCLUDED = range(12, 17)
@@ -421,7 +421,7 @@ def test_scale_file_gives_the_mm_columns(clip, tmp_path) -> None:
 
 def test_a_real_bug_shows_its_traceback(clip, tmp_path, monkeypatch) -> None:
     """Only the tool's own input errors become one-line messages; a ValueError inside is a bug."""
-    from flow import quality
+    from flow.measure import quality
 
     def broken(*args, **kwargs):
         raise ValueError("internal slip")
@@ -454,7 +454,7 @@ def test_failed_sidecar_leaves_no_output_at_all(clip, tmp_path, monkeypatch) -> 
 
 
 def test_failed_poi_tracks_leave_no_csv(clip, tmp_path, monkeypatch) -> None:
-    from flow import storage
+    from flow.measure import storage
 
     def failing_write_npz(path, arrays, **kwargs):
         Path(path).write_bytes(b"PK half an archive")
@@ -470,7 +470,7 @@ def test_failed_poi_tracks_leave_no_csv(clip, tmp_path, monkeypatch) -> None:
 def _at_sixth_frame(monkeypatch, action, counter: list | None = None) -> None:
     """Every method built from now on calls ``action()`` when its sixth frame is measured
     (and appends to ``counter`` for every frame)."""
-    from flow import registry
+    from flow.methods import registry
 
     real_get = registry.get_method
     calls = {"n": 0}
@@ -513,7 +513,7 @@ def test_sigterm_leaves_nothing(clip, tmp_path, monkeypatch, capsys, when) -> No
     import os
     import signal
 
-    from flow import storage
+    from flow.measure import storage
 
     if when == "tracking":
         _at_sixth_frame(monkeypatch, lambda: os.kill(os.getpid(), signal.SIGTERM))

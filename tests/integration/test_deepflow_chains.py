@@ -2,7 +2,7 @@
 the run is split, and full measurements where tracking cannot hold (a jump, an occlusion).
 
 ``deepflow`` measures the first frame of each chain of ``CHAIN_LENGTH`` frames in full and
-tracks the member's edges through the rest (see :mod:`flow.methods.deepflow`). The chains are
+tracks the member's edges through the rest (see :mod:`flow.methods.deepflow.method`). The chains are
 fixed by the frame index, so a run split into --frames parts (starting inside a chain) or
 measured with --jobs 2 gives the very numbers of one run; a frame where the member jumps or
 the view is blocked gets the full measurement.
@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from flow.cli import main
-from flow.methods.deepflow import CHAIN_LENGTH
+from flow.methods.deepflow.method import CHAIN_LENGTH
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "unit"))
 from _lowtex_clip import encode, make_clip  # noqa: E402
@@ -117,7 +117,7 @@ def test_frames_stand_alone_where_there_is_nothing_to_track(scene) -> None:
     """Chains only where the member's edges can be tracked: not for the dense ablation, not
     with background points (their flow needs the dense solve), not with warm=false; and a
     NaN starting guess makes the edge fit fail, never the run."""
-    from flow.methods.deepflow import DeepFlow, DeepFlowDense
+    from flow.methods.deepflow.method import DeepFlow, DeepFlowDense
 
     clip = scene["clip"]
     reference, mask = clip.frames[0], clip.mask

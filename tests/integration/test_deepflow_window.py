@@ -21,7 +21,7 @@ import pytest
 
 from flow.cli import main
 from flow.methods.base import CROP_MARGIN_PX
-from flow.methods.deepflow import BASE_REACH_PX, MEMBER_CONTEXT_PX, WIDEN_SHARE, DeepFlow
+from flow.methods.deepflow.method import BASE_REACH_PX, MEMBER_CONTEXT_PX, WIDEN_SHARE, DeepFlow
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "unit"))
 from _lowtex_clip import encode, make_clip  # noqa: E402
@@ -105,8 +105,8 @@ def test_the_reach_and_window_follow_the_motion_not_the_frame():
 def test_a_long_reach_is_matched_coarser_to_stay_within_the_memory_budget():
     """The matching's response volumes grow with the window's area times the reach squared:
     a reach that would pass MATCH_BUDGET_BYTES is searched at a coarser downscale instead."""
-    from flow.deepmatching import MatchParams, response_bytes
-    from flow.methods.deepflow import MATCH_BUDGET_BYTES, MAX_REACH_PX, _match_at
+    from flow.methods.deepflow.deepmatching import MatchParams, response_bytes
+    from flow.methods.deepflow.method import MATCH_BUDGET_BYTES, MAX_REACH_PX, _match_at
 
     window = (300 + 2 * int(MAX_REACH_PX), 500 + 2 * int(MAX_REACH_PX))
     base = MatchParams()

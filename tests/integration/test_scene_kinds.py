@@ -21,7 +21,7 @@ import pytest
 from scipy import ndimage
 
 from flow.cli import main
-from flow.methods.deepflow import REFUSALS
+from flow.methods.deepflow.method import REFUSALS
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "unit"))
 from _lowtex_clip import Clip, encode  # noqa: E402

@@ -1,4 +1,4 @@
-"""High-speed camera files: Photron .cih/.cihx + .mraw and Phantom .cine (flow.camfiles)."""
+"""High-speed camera files: Photron .cih/.cihx + .mraw and Phantom .cine (flow.io.camfiles)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flow.camfiles import PhantomCine, PhotronMraw, open_camera_file, unpack_bits
-from flow.io import InputError
+from flow.io.camera import open_camera_file
+from flow.io.camfiles import unpack_bits
+from flow.io.errors import InputError
+from flow.io.phantom import PhantomCine
+from flow.io.photron import PhotronMraw
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / ".." / "shared" / "data"

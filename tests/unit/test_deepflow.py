@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-import flow.methods.deepflow as deepflow_module
-from flow import registry, variational
+import flow.methods.deepflow.method as deepflow_module
+from flow.methods import registry
+from flow.methods.deepflow import variational
 
 sys.path.insert(0, str(Path(__file__).parent))  # shared synthetic pairs
 from _deepflow_synth import (  # noqa: E402
@@ -99,7 +100,7 @@ def test_low_texture_bar_slope_is_one():
 
 
 def _random_system(height, width, seed):
-    """Packed SOR arrays of a diagonally dominant random system (see flow.variational)."""
+    """Packed SOR arrays of a diagonally dominant random system (see flow.methods.deepflow.variational)."""
     rng = np.random.default_rng(seed)
     shape = (height + 2, 2, variational._packed_width(width))
     links = [np.zeros(shape, np.float32) for _ in range(2)]

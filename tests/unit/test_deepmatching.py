@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import flow.deepmatching as dm
-import flow.methods.deepflow as deepflow_module
-from flow.deepmatching import MatchParams, deep_matching, densify
+import flow.methods.deepflow.deepmatching as dm
+import flow.methods.deepflow.method as deepflow_module
+from flow.methods.deepflow.deepmatching import MatchParams, deep_matching, densify
 
 sys.path.insert(0, str(Path(__file__).parent))  # shared synthetic pairs
 from _deepflow_synth import epe, rigid_flow, textured, to_u8, visible, warp_forward  # noqa: E402

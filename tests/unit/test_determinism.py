@@ -13,8 +13,8 @@ from pathlib import Path
 SCRIPT = r"""
 import hashlib
 import numpy as np
-from flow.deepmatching import deep_matching
-from flow.variational import VariationalParams, refine
+from flow.methods.deepflow.deepmatching import deep_matching
+from flow.methods.deepflow.variational import VariationalParams, refine
 
 rng = np.random.default_rng(3)
 y, x = np.mgrid[0:96, 0:128].astype(np.float32)

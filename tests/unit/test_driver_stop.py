@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from flow import driver
+from flow.measure import driver
 
 
 class _Method:

@@ -11,7 +11,7 @@ import pytest
 import pyuff
 
 from flow.export import write_uff
-from flow.io import InputError
+from flow.io.errors import InputError
 
 COLUMNS = ["frame", "time_s", "dx_px", "dy_px", "dx_mm", "dy_mm", "valid"]
 

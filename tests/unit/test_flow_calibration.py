@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from flow.calibration import Undistorter, calibrate, load_calibration, scale_from_known_length
-from flow.io import InputError, Roi
+from flow.io.errors import InputError
+from flow.io.frames import Roi
 
 # 960 x 720: at half that size the corner detector's own error (~0.02 px, from the curved,
 # blurred edges) still moves k2 by up to ~2.5 %; here it stays within ~0.4 %.

@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flow.filtering import filter_and_average, reference_offset
-from flow.quality import flag_invalid
+from flow.measure.filtering import filter_and_average, reference_offset
+from flow.measure.quality import flag_invalid
 
 
 def planted(seed: int = 0):
@@ -89,7 +89,7 @@ def test_flag_invalid_catches_a_blocked_view() -> None:
 
 def test_incoherent_frames_are_flagged_even_with_a_low_residual():
     """An occluder as bright as the structure: residual stays low, the POIs scatter."""
-    from flow.quality import flag_incoherent, poi_spread
+    from flow.measure.quality import flag_incoherent, poi_spread
 
     rng = np.random.default_rng(3)
     frames, points = 40, 200
@@ -104,7 +104,7 @@ def test_incoherent_frames_are_flagged_even_with_a_low_residual():
 
 
 def _tracks(dx: np.ndarray, dy: np.ndarray, residual: np.ndarray | None = None):
-    from flow.tracks import Tracks
+    from flow.measure.tracks import Tracks
 
     n_frames, n_points = dx.shape
     return Tracks(frame=np.arange(n_frames), time_s=np.arange(n_frames) / 30.0, dx=dx.astype(np.float32),
@@ -115,7 +115,7 @@ def _tracks(dx: np.ndarray, dy: np.ndarray, residual: np.ndarray | None = None):
 
 def test_half_background_mask_with_a_large_transient_stays_valid() -> None:
     """Background POIs in the mask stay put while the structure jumps: that is motion, not occlusion."""
-    from flow.quality import measure
+    from flow.measure.quality import measure
 
     rng = np.random.default_rng(4)
     frames = 120
@@ -133,7 +133,7 @@ def test_half_background_mask_with_a_large_transient_stays_valid() -> None:
 
 def test_bright_occluder_is_still_flagged_with_background_in_the_mask() -> None:
     """The same mask, and frames whose flow is garbage everywhere: flagged, and the filters unspoiled."""
-    from flow.quality import measure
+    from flow.measure.quality import measure
 
     rng = np.random.default_rng(5)
     frames = 120
@@ -152,7 +152,7 @@ def test_bright_occluder_is_still_flagged_with_background_in_the_mask() -> None:
 
 def test_poi_kept_frac_follows_each_frame() -> None:
     """The fraction of kept POIs that are measured and agree with the frame: per frame, not per POI."""
-    from flow.quality import measure
+    from flow.measure.quality import measure
 
     rng = np.random.default_rng(6)
     frames, points = 60, 100
@@ -172,9 +172,9 @@ def test_poi_kept_frac_follows_each_frame() -> None:
 
 def test_filters_in_small_blocks_match_one_block(monkeypatch) -> None:
     """Long runs are filtered block by block from disk; the numbers must not depend on the blocks."""
-    import flow.filtering as filtering
-    from flow.quality import measure
-    from flow.storage import DiskMatrix, PoiStore
+    import flow.measure.filtering as filtering
+    from flow.measure.quality import measure
+    from flow.measure.storage import DiskMatrix, PoiStore
 
     truth, dx, dy = planted()
     dx[60:, 7] = np.nan
@@ -203,7 +203,7 @@ def test_uncertainty_carries_the_reference_frames_own_error() -> None:
     """Every frame shares the reference's error: frames whose own fit reports sigma but whose
     errors all carry one common offset of 1.2 sigma (seen on an independent clip) are covered
     at 2 sigma only once the reference's term is in."""
-    from flow.quality import with_reference_term
+    from flow.measure.quality import with_reference_term
 
     rng = np.random.default_rng(3)
     own = np.full(400, 0.03)
@@ -241,7 +241,7 @@ def _tracks_with_sigma(sigma_dx: float, sigma_dy: float, n_frames: int = 120, se
 def test_a_clip_the_images_cannot_resolve_has_every_frame_flagged(sigma_dx, sigma_dy, unresolved) -> None:
     """The typical frame's own uncertainty (better axis, the reference's term in) above 0.35 px:
     not a sub-pixel reading, so every frame is flagged; below, the flags are the per-frame ones."""
-    from flow.quality import MAX_TYPICAL_SIGMA_PX, measure
+    from flow.measure.quality import MAX_TYPICAL_SIGMA_PX, measure
 
     result = measure(_tracks_with_sigma(sigma_dx, sigma_dy))
     typical = np.sqrt(2) * min(sigma_dx, sigma_dy)
@@ -262,7 +262,7 @@ def test_an_uncertain_clip_that_resolves_a_large_motion_is_not_flagged(amplitude
     flagged for a few pixels of motion and kept for tens. Either way every frame keeps its
     reading (the flag qualifies it), and the measurement reports the sigma, the motion's 5-95 %
     range and their ratio on the better axis."""
-    from flow.quality import MAX_SIGMA_TO_RANGE, MAX_TYPICAL_SIGMA_PX, measure
+    from flow.measure.quality import MAX_SIGMA_TO_RANGE, MAX_TYPICAL_SIGMA_PX, measure
 
     tracks = _tracks_with_sigma(0.35, 0.6, amplitude_px=amplitude_px)
     result = measure(tracks)
@@ -281,7 +281,7 @@ def test_an_uncertain_clip_that_resolves_a_large_motion_is_not_flagged(amplitude
 def test_the_better_axis_judges_resolution() -> None:
     """Per axis, sigma against that axis's own motion; the smaller ratio wins (a vertical member
     swinging sideways is judged on dx, whatever dy's uncertainty)."""
-    from flow.quality import motion_resolution
+    from flow.measure.quality import motion_resolution
 
     frames = np.arange(200)
     dx, dy = 10.0 * np.sin(frames / 7.0), 0.2 * np.sin(frames / 7.0)
@@ -298,7 +298,7 @@ def test_the_better_axis_judges_resolution() -> None:
 def test_features_followed_on_their_own_are_never_flagged_for_precision() -> None:
     """KLT's sigma is its features' standard error (background features in the mean by design),
     not the images' uncertainty: the precision check does not apply."""
-    from flow.quality import measure
+    from flow.measure.quality import measure
 
     rng = np.random.default_rng(5)
     dx = np.where(np.arange(40) < 20, 0.0, 8.0 * np.sin(np.arange(120) / 5.0)[:, None])

@@ -6,8 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from flow.io import FrameSource, InputError, Roi, as_uint8, deep_image_gain, significant_bits
-from flow.poi import load_mask, poi_coordinates, polygon_mask, rect_mask
+from flow.io.errors import InputError
+from flow.io.frames import Roi, as_uint8, deep_image_gain, significant_bits
+from flow.io.source import open_source
+from flow.measure.poi import load_mask, poi_coordinates, polygon_mask, rect_mask
 
 
 def test_roi_parse_and_bounds() -> None:
@@ -25,7 +27,7 @@ def test_image_folder_streams_grey_roi_with_fps_timestamps(tmp_path) -> None:
         image = np.full((30, 40, 3), 10 * i, np.uint8)
         image[5, 7] = (255, 255, 255)
         cv2.imwrite(str(tmp_path / f"{i:02d}.png"), image)
-    source = FrameSource(tmp_path, roi=Roi(7, 5, 10, 8), fps=25.0)
+    source = open_source(tmp_path, roi=Roi(7, 5, 10, 8), fps=25.0)
     frames = list(source)
     assert [f[0] for f in frames] == [0, 1, 2]
     assert [f[1] for f in frames] == pytest.approx([0, 0.04, 0.08])
@@ -57,18 +59,18 @@ def test_masks_full_size_roi_size_rect_polygon_and_grid(tmp_path) -> None:
 def test_frame_ranges_and_fps_checks(tmp_path) -> None:
     for i in range(5):
         cv2.imwrite(str(tmp_path / f"{i:02d}.png"), np.full((6, 8), 40 * i, np.uint8))
-    source = FrameSource(tmp_path, fps=10.0)
+    source = open_source(tmp_path, fps=10.0)
     picked = list(source.frames(1, 4))
     assert [f[0] for f in picked] == [1, 2, 3]
     assert [f[1] for f in picked] == pytest.approx([0.1, 0.2, 0.3])
     assert [int(f[2][0, 0]) for f in picked] == [40, 80, 120]
     assert [f[0] for f in source.frames(3)] == [3, 4]
     with pytest.raises(InputError, match="pass --fps"):
-        FrameSource(tmp_path)
-    assert [f[1] for f in FrameSource(tmp_path, require_fps=False)] == [0, 1, 2, 3, 4]
+        open_source(tmp_path)
+    assert [f[1] for f in open_source(tmp_path, require_fps=False)] == [0, 1, 2, 3, 4]
     for bad in (0.0, -5.0, float("nan")):
         with pytest.raises(InputError, match="is not a finite positive number"):
-            FrameSource(tmp_path, fps=bad)
+            open_source(tmp_path, fps=bad)
 
 
 def test_video_fps_is_checked_too_and_ranges_skip_decoding(tmp_path) -> None:
@@ -78,8 +80,8 @@ def test_video_fps_is_checked_too_and_ranges_skip_decoding(tmp_path) -> None:
         writer.write(np.full((12, 16, 3), 40 * i, np.uint8))
     writer.release()
     with pytest.raises(InputError, match="--fps -1.0 is not a finite positive number"):
-        FrameSource(video, fps=-1.0)
-    source = FrameSource(video)
+        open_source(video, fps=-1.0)
+    source = open_source(video)
     picked = list(source.frames(2, 5))
     assert [f[0] for f in picked] == [2, 3, 4]
     assert [f[1] for f in picked] == pytest.approx([0.08, 0.12, 0.16])
@@ -95,7 +97,7 @@ def test_sixteen_bit_images_are_measured_at_full_depth(tmp_path) -> None:
     first[0, 0] = 4000  # 12-bit data: 4000 < 4096
     cv2.imwrite(str(tmp_path / "a.png"), first)
     cv2.imwrite(str(tmp_path / "b.png"), first + np.uint16(1))  # one count brighter
-    source = FrameSource(tmp_path, fps=10.0)
+    source = open_source(tmp_path, fps=10.0)
     frames = [grey for _, _, grey in source]
     gain = np.float32(deep_image_gain(first))
     assert source.bit_depth == 12
@@ -106,7 +108,7 @@ def test_sixteen_bit_images_are_measured_at_full_depth(tmp_path) -> None:
     eight = tmp_path / "eight"
     eight.mkdir()
     cv2.imwrite(str(eight / "a.png"), (first >> 4).astype(np.uint8))
-    source = FrameSource(eight, fps=10.0)
+    source = open_source(eight, fps=10.0)
     assert source.bit_depth == 8 and next(iter(source))[2].dtype == np.uint8
 
 
@@ -215,7 +217,7 @@ def test_a_damaged_image_anywhere_is_refused_when_the_folder_is_opened(tmp_path,
     name, expected = _damage(tmp_path, problem)
     with warnings.catch_warnings(record=True) as shown, pytest.raises(InputError) as refused:
         warnings.simplefilter("always")
-        FrameSource(tmp_path, fps=10.0)
+        open_source(tmp_path, fps=10.0)
     message = str(refused.value)
     assert name in message and expected in message and "\n" not in message, message
     assert not shown and not [r for r in caplog.records if r.name.startswith("PIL")]
@@ -234,7 +236,7 @@ def test_the_folder_scan_keeps_sound_files_and_skips_subfolders(tmp_path, caplog
     segment = b"\xff\xe1" + (len(thumbnail) + 2).to_bytes(2, "big") + thumbnail
     exif.write_bytes(exif.read_bytes()[:2] + segment + exif.read_bytes()[2:])
     (tmp_path / "f3.jpg").mkdir()
-    source = FrameSource(tmp_path, fps=10.0)
+    source = open_source(tmp_path, fps=10.0)
     assert [index for index, _, _ in source] == [0, 1, 2]
     assert not [r for r in caplog.records if r.name.startswith("PIL")]
 
@@ -249,14 +251,14 @@ def test_pillow_says_nothing_while_the_folder_is_scanned(tmp_path, caplog) -> No
     _tiff_with_a_broken_directory(tmp_path / "f1.tif", entries=40)
     with warnings.catch_warnings(record=True) as shown:
         warnings.simplefilter("always")
-        FrameSource(tmp_path, fps=10.0)
+        open_source(tmp_path, fps=10.0)
     assert not shown and not [r for r in caplog.records if r.name.startswith("PIL")]
 
 
 def test_read_image_holds_decoder_noise_back_for_the_message(tmp_path, capfd) -> None:
     """libpng prints its errors on file descriptor 2 itself: they become the complaint that goes
     into the one-line message (a mask, the first image of a folder), and nothing reaches stderr."""
-    from flow.imagefiles import read_image
+    from flow.io.imagefiles import read_image
 
     good = tmp_path / "good.png"
     cv2.imwrite(str(good), np.full((6, 8), 90, np.uint8))
@@ -274,7 +276,7 @@ def test_read_image_holds_decoder_noise_back_for_the_message(tmp_path, capfd) ->
     _png_with_undecodable_data(first / "f0.png")
     cv2.imwrite(str(first / "f1.png"), np.full((6, 8), 90, np.uint8))
     with pytest.raises(InputError, match=r"f0.png' cannot be read \(libpng error: .*\): remove or replace it"):
-        FrameSource(first, fps=10.0)
+        open_source(first, fps=10.0)
     assert capfd.readouterr().err == ""
 
 
@@ -292,7 +294,7 @@ def test_a_decoder_warning_on_an_image_that_decodes_goes_in_the_notes(tmp_path, 
     frames.mkdir()
     image.save(frames / "f0.png", icc_profile=b"not a profile")
     image.save(frames / "f1.png")
-    source = FrameSource(frames, fps=10.0)
+    source = open_source(frames, fps=10.0)
     assert any("image f0.png (the first) decoded with a warning: libpng warning" in n for n in source.notes)
     assert capfd.readouterr().err == ""
 
@@ -307,7 +309,7 @@ def test_opencv_logs_nothing_once_refflow_quiets_it(tmp_path) -> None:
 
     clip = tmp_path / "clip.mp4"  # an MP4 whose first box header is damaged
     clip.write_bytes(b"\x01\x00\x00\x20ftypisom" + bytes(200))
-    script = ("import cv2, sys; from flow.io import open_video, quiet_decoder_logs; quiet_decoder_logs(); "
+    script = ("import cv2, sys; from flow.io.video import open_video, quiet_decoder_logs; quiet_decoder_logs(); "
               "print(cv2.utils.logging.getLogLevel()); "
               "assert not open_video(sys.argv[1]).isOpened() and cv2.imread(sys.argv[1]) is None")
     env = {k: v for k, v in os.environ.items() if k not in ("OPENCV_LOG_LEVEL", "OPENCV_FFMPEG_LOGLEVEL")}
@@ -331,7 +333,7 @@ def test_lossless_frames_are_told_from_a_lossy_codecs(tmp_path) -> None:
         path = tmp_path / name
         subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-v", "error", "-y", "-f", "lavfi", "-i",
                         "testsrc=size=64x48:rate=10", "-t", "0.5", *codec, str(path)], check=True)
-        return FrameSource(path)
+        return open_source(path)
 
     assert encode("a.mkv", "-c:v", "ffv1").lossless
     assert encode("b.avi", "-c:v", "rawvideo", "-pix_fmt", "gray").lossless
@@ -341,6 +343,6 @@ def test_lossless_frames_are_told_from_a_lossy_codecs(tmp_path) -> None:
     folder.mkdir()
     for i in range(3):
         cv2.imwrite(str(folder / f"{i:02d}.png"), np.full((12, 16), 40 * i, np.uint8))
-    assert FrameSource(folder, fps=10).lossless
+    assert open_source(folder, fps=10).lossless
     cv2.imwrite(str(folder / "03.jpg"), np.full((12, 16), 200, np.uint8))
-    assert not FrameSource(folder, fps=10).lossless  # one JPEG among them
+    assert not open_source(folder, fps=10).lossless  # one JPEG among them

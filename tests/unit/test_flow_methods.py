@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flow import registry
-from flow.driver import track_dense, track_sparse
-from flow.io import FrameSource
+from flow.io.source import open_source
+from flow.measure.driver import track_dense, track_sparse
+from flow.measure.quality import measure
+from flow.methods import registry
 from flow.methods.base import CROP_MARGIN_PX
 from flow.methods.klt import KLT
-from flow.quality import measure
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _fresh_python import run_fresh  # noqa: E402
@@ -64,8 +64,8 @@ def test_registry_says_why_a_method_is_unavailable() -> None:
     # dependency is missing): its methods are left out, the registry says why, and the CLI
     # falls back to deepflow-opencv with that reason, asking the registry only.
     code = ("import contextlib, io, json, sys\n"
-            "sys.modules['flow.variational'] = None\n"
-            "from flow import cli, registry\n"
+            "sys.modules['flow.methods.deepflow.variational'] = None\n"
+            "from flow import cli\nfrom flow.methods import registry\n"
             "out = io.StringIO()\n"
             "with contextlib.redirect_stdout(out):\n    cli.main(['methods'])\n"
             "print(json.dumps([registry.available(), registry.unavailable(),"
@@ -75,7 +75,7 @@ def test_registry_says_why_a_method_is_unavailable() -> None:
     names, missing, (default, note), listing = json.loads(run.stdout.splitlines()[-1])
     assert {"deepflow", "deepflow-dense", "deepmatching"} <= set(missing)
     assert "dis" in names and set(missing).isdisjoint(names)
-    assert "flow.variational" in missing["deepflow"]
+    assert "flow.methods.deepflow.variational" in missing["deepflow"]
     assert default == "deepflow-opencv" and f"({missing['deepflow']})" in note
     assert f"(deepflow unavailable: {missing['deepflow']})" in listing
 
@@ -131,7 +131,7 @@ def drift(tmp_path_factory):
 
 def test_klt_drifts(drift) -> None:
     folder, truth, mask = drift
-    result = measure(track_sparse(FrameSource(folder, fps=30.0), KLT(), mask), filter_enabled=False)
+    result = measure(track_sparse(open_source(folder, fps=30.0), KLT(), mask), filter_enabled=False)
     assert result.valid.all()
     # KLT averages moving-background corners and integrates frame-to-frame: at the end,
     # where the structure is back at rest, it reports motion.
@@ -144,7 +144,7 @@ def test_reference_frame_methods_do_not_drift(drift, name: str) -> None:
     folder, truth, mask = drift
     poi_xy = np.stack(np.nonzero(mask)[::-1], axis=1)[::7]
     params = FAST_PARAMS.get(name, {})
-    tracks = track_dense(FrameSource(folder, fps=30.0), lambda: registry.get_method(name, **params), poi_xy)
+    tracks = track_dense(open_source(folder, fps=30.0), lambda: registry.get_method(name, **params), poi_xy)
     result = measure(tracks)
     assert result.valid.all()
     error = np.abs(result.filtered.dx - truth)
@@ -156,7 +156,7 @@ def test_klt_ref_follows_features_against_reference(tmp_path) -> None:
     truth = _drift_sequence(tmp_path, n_frames=12)
     mask = np.zeros((120, 160), bool)
     mask[50:80, 10:150] = True
-    tracks = track_sparse(FrameSource(tmp_path, fps=30.0), registry.get_method("klt-ref", use_mask=True), mask)
+    tracks = track_sparse(open_source(tmp_path, fps=30.0), registry.get_method("klt-ref", use_mask=True), mask)
     result = measure(tracks)
     assert np.abs(result.filtered.dx - truth).max() < 0.15
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flow.errors import InputError
+from flow.io.errors import InputError
 from flow.modal import add_parser, run_modal
 from refflow.modal import mac
 

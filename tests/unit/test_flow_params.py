@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from flow.deepmatching import MatchParams
-from flow.variational import VariationalParams
+from flow.methods.deepflow.deepmatching import MatchParams
+from flow.methods.deepflow.variational import VariationalParams
 
 
 @pytest.mark.parametrize("field, value, message", [
@@ -38,8 +38,8 @@ from datetime import timedelta  # noqa: E402
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-from flow import registry  # noqa: E402
-from flow.params import Param  # noqa: E402
+from flow.methods import registry  # noqa: E402
+from flow.methods.params import Param  # noqa: E402
 
 METHODS = registry.available()
 NUMERIC = [(name, param) for name in METHODS for param in registry.parameters(name)

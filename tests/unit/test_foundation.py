@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -127,19 +128,66 @@ def test_flow_modules_import_in_no_circle():
     assert not circles, f"flow's modules import in a circle: {sorted(circles)}"
 
 
+# Issue 34: the layout shows the design. The readers (flow/io/), the measurement every method
+# shares (flow/measure/) and the methods (flow/methods/, one folder for a method with its own
+# kernels) are sub-packages; the application (CLI, pipeline, options, outputs, the other
+# commands, gui/) sits at the top and is the only part that sees them all.
+MAX_TOP_MODULES = 12
+MAX_INIT_LINES = 40
+# flow's sub-package -> the others it may import (nothing from the application at the top)
+LAYERS = {"io": set(), "measure": {"io"}, "methods": {"io", "measure"}}
+
+
+def test_flow_top_holds_the_application_only():
+    top = sorted(p.name for p in (ROOT / "flow").glob("*.py"))
+    assert len(top) <= MAX_TOP_MODULES, (
+        f"{len(top)} modules directly in flow/ (at most {MAX_TOP_MODULES}): {top}; a reader "
+        "belongs in flow/io/, a step of the measurement in flow/measure/, a method or its "
+        "kernels in flow/methods/")
+    packages = sorted(p.parent.name for p in (ROOT / "flow").glob("*/__init__.py"))
+    assert {"io", "measure", "methods", "gui"} <= set(packages), packages
+
+
+def test_flow_inits_are_short():
+    # A package's __init__ says what is inside; code lives in its modules.
+    long = {str(p.relative_to(ROOT)): n for p in sorted((ROOT / "flow").rglob("__init__.py"))
+            if (n := len(p.read_text().splitlines())) > MAX_INIT_LINES}
+    assert not long, f"__init__.py over {MAX_INIT_LINES} lines: {long}"
+
+
+def _part(module: str) -> str:
+    """The sub-package of LAYERS a module of flow belongs to, else "application"."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[1] in LAYERS else "application"
+
+
+def test_flow_sub_packages_import_only_the_layers_below():
+    # Even from inside a function: the readers know nothing of the measurement, the
+    # measurement nothing of a method (the driver gets one as an argument), and none of
+    # them anything of the application above them.
+    graph = _flow_import_graph(deferred=True)
+    crossing = sorted(f"{module} -> {target}" for module, targets in graph.items()
+                      if _part(module) in LAYERS for target in targets
+                      if target != "flow" and _part(target) != _part(module)
+                      and _part(target) not in LAYERS[_part(module)])
+    assert not crossing, f"imports against the layers {LAYERS}: {crossing}"
+
+
 def test_registry_and_methods_import_in_no_circle_even_on_demand():
     # STYLE.md "Base classes apart from the registry": a method module imports the base, the
     # registry loads the methods (on first use) and imports the base; neither way back, not
     # even from inside a function.
     graph = _flow_import_graph(deferred=True)
-    ours = [m for m in graph if m == "flow.registry" or m.split(".")[:2] == ["flow", "methods"]]
+    ours = [m for m in graph if m.split(".")[:2] == ["flow", "methods"]]
     circles = {" -> ".join(c) for m in ours if (c := _circle_through(graph, m))}
     assert not circles, f"the registry and the methods import in a circle: {sorted(circles)}"
 
 
-METHOD_MODULES = ["flow.registry", "flow.methods", "flow.methods.base", *(
-    f"flow.methods.{p.stem}" for p in sorted((ROOT / "flow" / "methods").glob("*.py"))
-    if p.stem not in ("__init__", "base"))]
+# The modules that register methods (a method with its own kernels is a folder: its module
+# that registers, not the kernels).
+METHOD_MODULES = ["flow.methods.registry", "flow.methods", "flow.methods.base", *(
+    _module_name(p) for p in sorted((ROOT / "flow" / "methods").rglob("*.py"))
+    if p.name != "base.py" and re.search(r"^@register\(", p.read_text(), re.MULTILINE))]
 # Each module first, each pair of modules both ways round.
 IMPORT_ORDERS = [pytest.param(names[i:] + names[:i], id=f"{names[i]}-first-{way}")
                  for way, names in (("forward", METHOD_MODULES), ("backward", METHOD_MODULES[::-1]))
@@ -149,11 +197,11 @@ IMPORT_ORDERS = [pytest.param(names[i:] + names[:i], id=f"{names[i]}-first-{way}
 @pytest.mark.parametrize("order", IMPORT_ORDERS)
 def test_registry_and_methods_import_in_any_order(order):
     # In a fresh interpreter; then the registry knows every built-in method.
-    from flow import registry
+    from flow.methods import registry
 
     code = ("import importlib\n"
             f"for name in {order!r}:\n    importlib.import_module(name)\n"
-            "from flow import registry\nprint(','.join(registry.available()))\n")
+            "from flow.methods import registry\nprint(','.join(registry.available()))\n")
     run = run_fresh(code)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == [",".join(registry.available())]

@@ -8,8 +8,9 @@ import subprocess
 import numpy as np
 import pytest
 
-from flow.errors import InputError
-from flow.io import FPS_RANGE, FrameSource, check_fps
+from flow.io.errors import InputError
+from flow.io.frames import FPS_RANGE, FrameSource, check_fps
+from flow.io.source import open_source
 
 
 def _ffmpeg(*args: str) -> None:
@@ -55,7 +56,7 @@ def test_camera_frame_rates_give_finite_times(fps) -> None:
 
 
 def test_time_stamps_that_run_backwards_become_index_over_the_rate_with_a_note(tmp_path) -> None:
-    source = FrameSource(damaged_clip(tmp_path))
+    source = open_source(damaged_clip(tmp_path))
     frames, times = _read(source)
     assert (np.diff(times) <= 0).any(), "the clip must be damaged for this test to mean anything"
     fixed, notes = source.clock(frames, times)
@@ -65,7 +66,7 @@ def test_time_stamps_that_run_backwards_become_index_over_the_rate_with_a_note(t
 
 
 def test_a_variable_frame_rate_keeps_its_stamps_and_says_so(tmp_path) -> None:
-    source = FrameSource(vfr_clip(tmp_path))
+    source = open_source(vfr_clip(tmp_path))
     frames, times = _read(source)
     kept, notes = source.clock(frames, times)
     assert np.array_equal(kept, times)
@@ -76,6 +77,6 @@ def test_a_variable_frame_rate_keeps_its_stamps_and_says_so(tmp_path) -> None:
 def test_an_even_clock_has_nothing_to_say(tmp_path) -> None:
     video = tmp_path / "even.mkv"
     _ffmpeg("-f", "lavfi", "-i", "testsrc=size=64x48:rate=30", "-frames:v", "6", "-c:v", "ffv1", str(video))
-    source = FrameSource(video)
+    source = open_source(video)
     frames, times = _read(source)
     assert source.clock(frames, times) == (pytest.approx(frames / 30.0, abs=0.002), [])

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from flow.errors import InputError
+from flow.io.errors import InputError
 from flow.options import ScaleOptions
 from flow.scale import measurement_scale
 
@@ -87,7 +87,7 @@ def test_real_lenses_fit_their_frames(dist) -> None:
 
 def test_another_cameras_intrinsics_stop_the_undistorter_with_the_files_name(tmp_path) -> None:
     from flow.calibration import Undistorter, load_calibration
-    from flow.io import Roi
+    from flow.io.frames import Roi
 
     calibration = load_calibration(_calibration(tmp_path, FULL_HD))
     with pytest.raises(InputError, match=r"^calibration file 'x.json': its principal point"):

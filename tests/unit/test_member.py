@@ -1,4 +1,4 @@
-"""flow.member: the member's outline located as the boundary of two layers, and the motion fit."""
+"""flow.methods.deepflow.member: the member's outline located as the boundary of two layers, and the motion fit."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flow.member import MemberEdges
+from flow.methods.deepflow.member import MemberEdges
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _lowtex_clip import make_clip  # noqa: E402

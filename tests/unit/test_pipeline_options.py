@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from flow.errors import InputError
+from flow.io.errors import InputError
 from flow.options import FramesInfo, InputInfo, OutputOptions, RunInfo, ScaleOptions
 from flow.scale import MAX_MM_PER_PX, measurement_scale
 

@@ -1,4 +1,4 @@
-"""The region's affine correlation fit (flow.regionfit) against known motion."""
+"""The region's affine correlation fit (flow.methods.deepflow.regionfit) against known motion."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from flow.regionfit import RegionFit
+from flow.methods.deepflow.regionfit import RegionFit
 
 
 def to_u8(image: np.ndarray) -> np.ndarray:
@@ -170,7 +170,7 @@ def test_dic_challenge_sample3_subpixel_shifts_within_a_thousandth() -> None:
 def test_the_default_measures_a_mask_of_more_than_32767_pixels() -> None:
     """OpenCV's remap refuses maps wider than 32767: the photometric check once remapped one row
     holding every POI, and a 200x200 mask crashed the default."""
-    from flow import registry
+    from flow.methods import registry
 
     reference = to_u8(textured(260, 260, seed=13))
     current = to_u8(shifted(textured(260, 260, seed=13), 0.4, -0.2))

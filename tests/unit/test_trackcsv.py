@@ -84,7 +84,7 @@ def test_a_malformed_file_names_itself_and_the_problem(tmp_path, text, message) 
 def test_flow_and_analysis_read_through_it(tmp_path) -> None:
     from analysis.readers import read_track
     from flow.figures import read_measurements
-    from flow.io import InputError
+    from flow.io.errors import InputError
 
     one = _written(tmp_path, [(1, _rows(6, 0.0))])
     flow_view = read_measurements(one)[0]

@@ -178,7 +178,7 @@ def modal_video_files():
 
 def method_kind(method):
     # Imported on use: only the track rules need the registry.
-    from flow.registry import kinds
+    from flow.methods.registry import kinds
 
     known = kinds()
     if method not in known:

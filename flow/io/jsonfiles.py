@@ -9,7 +9,7 @@ import reprlib
 from pathlib import Path
 from typing import Any
 
-from flow.errors import InputError
+from flow.io.errors import InputError
 
 
 def load_json(path: str | Path, what: str) -> Any:

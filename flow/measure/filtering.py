@@ -16,7 +16,7 @@ Frames flagged invalid (occlusion) are excluded from the statistics, so a
 blocked view cannot poison the correlation; NaN entries (lost features) are
 ignored.
 
-The matrices may be disk-backed (``flow.storage.DiskMatrix``), far larger than memory (a long
+The matrices may be disk-backed (``flow.measure.storage.DiskMatrix``), far larger than memory (a long
 clip with thousands of POIs): every step reads them in blocks of frames
 (:func:`row_blocks`) and keeps only per-POI and per-frame vectors, so memory
 stays bounded by :data:`CHUNK_BYTES` whatever the clip length.

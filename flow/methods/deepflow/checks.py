@@ -2,8 +2,8 @@
 
 numba does not bounds-check: a pair of frames of different sizes, or a colour frame where
 a grey one belongs, would make a kernel read memory outside the arrays instead of failing.
-Every public entry point of :mod:`flow.deepmatching`, :mod:`flow.variational` and
-:mod:`flow.member` therefore checks its arrays here first and raises ``ValueError`` naming
+Every public entry point of :mod:`flow.methods.deepflow.deepmatching`, :mod:`flow.methods.deepflow.variational` and
+:mod:`flow.methods.deepflow.member` therefore checks its arrays here first and raises ``ValueError`` naming
 the offending shape or dtype.
 """
 

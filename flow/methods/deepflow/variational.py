@@ -43,8 +43,8 @@ import cv2
 import numpy as np
 from numba import njit
 
-from flow.checks import check_grey_pair, check_shape
-from flow.params import bounds, check_fields
+from flow.methods.deepflow.checks import check_grey_pair, check_shape
+from flow.methods.params import bounds, check_fields
 
 # The kernels keep IEEE arithmetic (no fastmath): with LLVM free to reassociate sums, a freshly
 # compiled kernel and the same kernel loaded from numba's cache gave different bytes, so the

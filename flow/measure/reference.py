@@ -20,8 +20,8 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from flow.errors import InputError
-from flow.io import FrameSource
+from flow.io.errors import InputError
+from flow.io.frames import FrameSource
 
 # The surroundings: the mask grown by this many pixels, or by this share of its larger side.
 NEAR_PX = 16

@@ -1,7 +1,7 @@
 """``deepflow`` (DeepMatching + variational refinement) and ``deepmatching``.
 
 Both are clean-room implementations from the papers (see
-:mod:`flow.deepmatching` and :mod:`flow.variational`).
+:mod:`flow.methods.deepflow.deepmatching` and :mod:`flow.methods.deepflow.variational`).
 
 References
 ----------
@@ -18,13 +18,19 @@ from typing import Any
 
 import numpy as np
 
-from flow.deepmatching import MatchParams, deep_matching, densify, response_bytes, search_radius
-from flow.member import MemberEdges, MemberFit, context_px
+from flow.measure.photometric import sample
 from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
-from flow.params import Param, declared, with_defaults
-from flow.photometric import sample
-from flow.regionfit import RegionFit, RegionMotion
-from flow.variational import VariationalParams, Workspace, refine
+from flow.methods.deepflow.deepmatching import (
+    MatchParams,
+    deep_matching,
+    densify,
+    response_bytes,
+    search_radius,
+)
+from flow.methods.deepflow.member import MemberEdges, MemberFit, context_px
+from flow.methods.deepflow.regionfit import RegionFit, RegionMotion
+from flow.methods.deepflow.variational import VariationalParams, Workspace, refine
+from flow.methods.params import Param, declared, with_defaults
 
 _MATCH_FIELDS = {f.name for f in dataclasses.fields(MatchParams)}
 _VAR_FIELDS = {f.name for f in dataclasses.fields(VariationalParams)}
@@ -111,7 +117,7 @@ def _match_at(match: MatchParams, reach: float | None, window_shape: tuple[int, 
     return match
 
 
-# Frames of one chain (see the driver, :func:`flow.driver.track_dense`) are measured in order.
+# Frames of one chain (see the driver, :func:`flow.measure.driver.track_dense`) are measured in order.
 # The first frame of a chain gets the full measurement: DeepMatching + DeepFlow, the member's
 # edges fitted from the dense flow, and the check that they match the POIs better. Where the
 # member's edges won, the next frames are tracked from the previous frame's member motion
@@ -346,10 +352,10 @@ class DeepFlow(DenseMethod):
     The dense flow (DeepMatching + DeepFlow) covers the POIs' window (see ``crop``) and starts
     two refinements of every region of the mask, each with its own assumptions:
 
-    * *texture* (:mod:`flow.regionfit`): the region as one image-correlation subset, an
+    * *texture* (:mod:`flow.methods.deepflow.regionfit`): the region as one image-correlation subset, an
       affine warp (translation, rotation, stretch, shear) with gain and offset fitted to all
       of its pixels; it needs texture inside the mask and nothing else;
-    * *outline* (:mod:`flow.member`): the member's edges against a background that stands
+    * *outline* (:mod:`flow.methods.deepflow.member`): the member's edges against a background that stands
       still; it needs a straight-edged member in front of a static background and nothing
       inside the mask.
 
@@ -364,8 +370,8 @@ class DeepFlow(DenseMethod):
     band. The sidecar counts the readings of each model (``<model>_readings``).
 
     Parameters (keyword-only; defaults follow the papers, see
-    :class:`flow.deepmatching.MatchParams` and
-    :class:`flow.variational.VariationalParams`)
+    :class:`flow.methods.deepflow.deepmatching.MatchParams` and
+    :class:`flow.methods.deepflow.variational.VariationalParams`)
     ----------
     preset : {"default", "fast", "large-displacement"}
     member : bool
@@ -374,7 +380,7 @@ class DeepFlow(DenseMethod):
         Refine each region as one affine correlation subset (default True).
     bias_correction : bool or None
         Take the texture fit's own sub-pixel bias, measured on the reference shifted exactly,
-        off its readings (:meth:`flow.regionfit.RegionFit.bias_curve`). None (default): on for
+        off its readings (:meth:`flow.methods.deepflow.regionfit.RegionFit.bias_curve`). None (default): on for
         frames given as arrays; ``refflow track`` makes it on for lossless input (image folders
         of TIFF/PNG/BMP/PGM, camera files, FFV1 and other lossless video) and off for a lossy
         codec's, whose own interpolation the correction does not know.
@@ -388,7 +394,7 @@ class DeepFlow(DenseMethod):
         (which follows the member's motion, :data:`BASE_REACH_PX`; or ``ngh_rad``), the
         pyramid's settling (:data:`flow.methods.base.CROP_MARGIN_PX`) and the member's
         reference analysis; the flow elsewhere is NaN. Without :meth:`bind` the whole frame is
-        solved, with the frame's reach (:func:`flow.deepmatching.search_radius`).
+        solved, with the frame's reach (:func:`flow.methods.deepflow.deepmatching.search_radius`).
     downscale, ngh_rad, max_patch, ... : matching parameters
     alpha, beta, delta, gamma, kappa, sigma, eta, n_outer, n_sor, omega, ... :
         variational parameters; ``beta = 0`` switches the matching term (and
@@ -707,7 +713,7 @@ class DeepMatchingDense(DenseMethod):
         Interpolation between atomic-patch centres.
     crop : bool
         Solve only around the pixels read (see :class:`DeepFlow`).
-    downscale, ngh_rad, max_patch, ... : see :class:`flow.deepmatching.MatchParams`.
+    downscale, ngh_rad, max_patch, ... : see :class:`flow.methods.deepflow.deepmatching.MatchParams`.
     """
 
     summary = "DeepMatching quasi-dense matches interpolated to a dense field"

@@ -8,7 +8,7 @@ through the sequence in order.
 
 Memory stays constant whatever the clip length: frames are streamed, and the
 per-POI tracks (``frames x POIs``, which eq. 10-12 need whole) go to a
-disk-backed :class:`~flow.storage.PoiStore` and are read back in blocks of frames.
+disk-backed :class:`~flow.measure.storage.PoiStore` and are read back in blocks of frames.
 """
 
 from __future__ import annotations
@@ -31,13 +31,14 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from flow.background import Background
-from flow.filtering import reference_offset
-from flow.io import FrameSource, InputError
-from flow.methods.base import crop_window
-from flow.photometric import LucasKanadeSigma, mean_abs, photometric_residual, sample
-from flow.storage import PoiStore
-from flow.tracks import Tracks
+from flow.io.errors import InputError
+from flow.io.frames import FrameSource
+from flow.measure.background import Background
+from flow.measure.filtering import reference_offset
+from flow.measure.photometric import LucasKanadeSigma, mean_abs, photometric_residual, sample
+from flow.measure.storage import PoiStore
+from flow.measure.tracks import Tracks
+from flow.measure.window import crop_window
 
 Undistort = Callable[[np.ndarray], np.ndarray] | None
 
@@ -385,6 +386,24 @@ class _Collected:
             bar.update(1)
 
 
+def _to_work_area(source: FrameSource, method: Any, reference: np.ndarray, mask: np.ndarray, poi_xy: np.ndarray,
+                  background: Background | None, undistort: Undistort) -> tuple[Any, ...]:
+    """The reference, mask and POIs cut to the method's work area (see :func:`_work_area`), the
+    area's origin in the ROI, the undistortion that cuts its output to the area, and the area
+    the source cuts each frame to (None: not cut there)."""
+    area = _work_area(method, reference.shape, mask, background)
+    origin = np.zeros(2, poi_xy.dtype)
+    # Without undistortion (which needs the whole frame) the source cuts each frame before
+    # its colour conversion; with it, the undistorted frame is cut.
+    at_source = area if undistort is None and hasattr(source, "cut") else None
+    if area is not None:
+        origin = np.array([area[1].start, area[0].start], poi_xy.dtype)
+        reference, mask, poi_xy = np.ascontiguousarray(reference[area]), mask[area], poi_xy - origin
+        if at_source is None:
+            undistort = _cutter(undistort, area)
+    return reference, mask, poi_xy, origin, undistort, at_source
+
+
 def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndarray, *,
                 reference_frame: int = 0, reference_average: int = 1, jobs: int = 1,
                 max_frames: int | None = None,
@@ -438,16 +457,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     pool = _MethodPool(factory, jobs)
     _warm_up(pool.methods[0], progress)
     digest = image_digest(reference)
-    area = _work_area(pool.methods[0], reference.shape, mask, background)
-    origin = np.zeros(2, poi_xy.dtype)
-    # Without undistortion (which needs the whole frame) the source cuts each frame before
-    # its colour conversion; with it, the undistorted frame is cut.
-    at_source = area if undistort is None and hasattr(source, "cut") else None
-    if area is not None:
-        origin = np.array([area[1].start, area[0].start], poi_xy.dtype)
-        reference, mask, poi_xy = np.ascontiguousarray(reference[area]), mask[area], poi_xy - origin
-        if at_source is None:
-            undistort = _cutter(undistort, area)
+    reference, mask, poi_xy, origin, undistort, at_source = _to_work_area(
+        source, pool.methods[0], reference, mask, poi_xy, background, undistort)
     pool.bind(reference, mask, read)
     readout = _PoiReadout(reference, poi_xy, regions, background)
     measure_chain = functools.partial(_measure_chain, pool, readout)

@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from flow.errors import InputError
+from flow.io.errors import InputError
 
 _STDERR_HOLD = threading.Lock()
 

@@ -133,7 +133,7 @@ def declared(cls: type) -> tuple[Param, ...]:
         optional = kind.endswith("|None")
         spec = dict(field.metadata.get(_METADATA_KEY) or {})
         if not spec:
-            raise TypeError(f"{cls.__name__}.{field.name} declares no range (flow.params.bounds)")
+            raise TypeError(f"{cls.__name__}.{field.name} declares no range (flow.methods.params.bounds)")
         table.append(Param(name=field.name, kind=kind.removesuffix("|None"), default=field.default,
                            optional=optional, **spec))
     return tuple(table)

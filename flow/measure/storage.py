@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from flow.filtering import block_rows
+from flow.measure.filtering import block_rows
 
 
 class DiskMatrix:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flow.robust import MAD_TO_SIGMA
+from flow.measure.robust import MAD_TO_SIGMA
 
 MODELS = ("affine", "translation")
 # An affine fit extrapolates a tilt of the background plane: below this spread (px)

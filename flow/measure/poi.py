@@ -7,8 +7,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from flow.imagefiles import read_image
-from flow.io import DISPLAY_ROTATIONS, InputError, Roi
+from flow.io.errors import InputError
+from flow.io.frames import Roi
+from flow.io.imagefiles import read_image
+from flow.io.video import DISPLAY_ROTATIONS
 
 
 def mask_labels(image: np.ndarray) -> np.ndarray:

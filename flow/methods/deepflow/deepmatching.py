@@ -49,8 +49,8 @@ import cv2
 import numpy as np
 from numba import njit
 
-from flow.checks import check_grey_pair
-from flow.params import bounds, check_fields, flag
+from flow.methods.deepflow.checks import check_grey_pair
+from flow.methods.params import bounds, check_fields, flag
 
 # The kernels keep IEEE arithmetic (no fastmath): with LLVM free to reassociate sums, a freshly
 # compiled kernel and the same kernel loaded from numba's cache gave different bytes, so the
@@ -76,7 +76,7 @@ class MatchParams:
         default) scales it with the image: :data:`REACH` of its longer side, at least
         :data:`MIN_RADIUS` px, so that a larger view of a moving structure is searched as far
         (the ``deepflow`` method bound to a mask instead follows the member's motion, see
-        :data:`flow.methods.deepflow.BASE_REACH_PX`).
+        :data:`flow.methods.deepflow.method.BASE_REACH_PX`).
     max_patch : int
         Largest patch side in downscaled pixels (4 * 2**levels).
     presmooth_sigma, desc_sigma : float

@@ -78,8 +78,8 @@ import cv2
 import numpy as np
 from numba import njit
 
-from flow.checks import check_shape
-from flow.robust import MAD_TO_SIGMA
+from flow.measure.robust import MAD_TO_SIGMA
+from flow.methods.deepflow.checks import check_shape
 
 # Visible background pixels the hidden ones under the outline are predicted from.
 N_PREDICT = 3

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from flow.filtering import FilterResult
+from flow.measure.filtering import FilterResult
 
 # The sidecar's timings that are no sums over a run's frames: a merge of parts recomputes the
 # rate and writes its own total; every other entry (seconds, a method's counts) adds up.
@@ -107,7 +107,7 @@ class Tracks:
 
 @dataclass(frozen=True)
 class Resolution:
-    """How well a clip resolves its motion on its better axis (:func:`flow.quality.motion_resolution`):
+    """How well a clip resolves its motion on its better axis (:func:`flow.measure.quality.motion_resolution`):
     the axis, its typical standard uncertainty and the robust (5-95 %) range of its readings, px.
     NaN where not known (no uncertainty from the method, fewer than two valid frames)."""
 
@@ -136,6 +136,6 @@ class Measurement:
     consistency_band_px: float = float("nan")
     sigma_dx: np.ndarray | None = None  # (F,) px, standard uncertainty of dx
     sigma_dy: np.ndarray | None = None
-    typical_sigma_px: float = float("nan")  # :func:`flow.quality.typical_sigma`
+    typical_sigma_px: float = float("nan")  # :func:`flow.measure.quality.typical_sigma`
     unresolved: bool = False  # every frame flagged: resolves neither a sub-pixel reading nor its motion
     resolution: Resolution = field(default_factory=Resolution)

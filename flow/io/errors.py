@@ -1,5 +1,6 @@
 """The error every reader and option check raises for bad user input (its own module, so that
-the readers of :mod:`flow.io` and :mod:`flow.camfiles` share it without importing each other)."""
+the readers of :mod:`flow.io.source` and :mod:`flow.io.camfiles` share it without importing
+each other)."""
 
 from __future__ import annotations
 

@@ -25,7 +25,7 @@ __all__ = ["available", "describe", "get_method", "kinds", "parameters", "regist
 _BUILTIN_MODULES = ("flow.methods.klt", "flow.methods.opencv_dense")
 # Built-in modules whose import may fail where a dependency is missing, with the methods they
 # hold: those are then unavailable, with the import error as the reason.
-_OPTIONAL_MODULES = {"flow.methods.deepflow": ("deepflow", "deepflow-dense", "deepmatching")}
+_OPTIONAL_MODULES = {"flow.methods.deepflow.method": ("deepflow", "deepflow-dense", "deepmatching")}
 
 
 @functools.cache
@@ -80,7 +80,7 @@ def _entry(name: str) -> Any:
 
 
 def parameters(name: str) -> tuple[Any, ...]:
-    """The keyword parameters of the method ``name``, each a :class:`flow.params.Param` (type,
+    """The keyword parameters of the method ``name``, each a :class:`flow.methods.params.Param` (type,
     default, range, meaning), in the order the method declares them."""
     return tuple(getattr(_entry(name).factory, "parameters", ()))
 

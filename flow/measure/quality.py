@@ -16,15 +16,15 @@ from collections.abc import Callable
 
 import numpy as np
 
-from flow.filtering import (
+from flow.measure.filtering import (
     MCR_THRESHOLD,
     THRESHOLD_RATIO,
     FilterResult,
     filter_and_average,
     row_blocks,
 )
-from flow.robust import MAD_TO_SIGMA
-from flow.tracks import Measurement, Resolution, Tracks
+from flow.measure.robust import MAD_TO_SIGMA
+from flow.measure.tracks import Measurement, Resolution, Tracks
 
 # Quality thresholds of :func:`measure`, the defaults of the flags it calls.
 # A frame's photometric residual (mean |grey difference| at the POIs) counts as a blocked

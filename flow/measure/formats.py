@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from flow.filtering import block_rows
-from flow.io import InputError
-from flow.storage import PoiStore, write_npz
-from flow.tracks import NOT_ADDITIVE_TIMINGS, Measurement, Tracks
+from flow.io.errors import InputError
+from flow.measure.filtering import block_rows
+from flow.measure.storage import PoiStore, write_npz
+from flow.measure.tracks import NOT_ADDITIVE_TIMINGS, Measurement, Tracks
 
 
 def iter_rows(result: Measurement, mm_per_px: float) -> Iterable[dict[str, Any]]:

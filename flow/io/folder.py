@@ -1,0 +1,96 @@
+"""The image-folder reader: a folder of image files, one frame each, in name order.
+
+Images carry no time stamps: a frame's time is its index over the frame rate the user gives.
+Every image's header and structure are checked before the first frame is measured.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from flow.io.errors import InputError
+from flow.io.frames import FrameSource, Roi, significant_bits
+from flow.io.imagefiles import because, check_image_file, read_image
+
+__all__ = ["IMAGE_SUFFIXES", "ImageFolderSource"]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
+# Image formats that keep what the sensor recorded (WebP may be either: taken as lossy).
+LOSSLESS_IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
+
+
+class ImageFolderSource(FrameSource):
+    """A folder of images (sorted by name), one frame each.
+
+    Parameters
+    ----------
+    path : Path
+        The folder (it exists: :func:`flow.io.source.open_source` checked).
+    roi : Roi, optional
+        Crop window in full-frame pixels; the whole frame if omitted.
+    fps : float, optional
+        The camera's frame rate (required unless ``require_fps=False``: images carry no
+        timestamps).
+    require_fps : bool
+        False lets the folder go without ``fps`` (tools that need no time, e.g. calibration);
+        its ``time_s`` is then the frame index.
+    """
+
+    def __init__(self, path: Path, *, roi: Roi | None = None, fps: float | None = None,
+                 require_fps: bool = True) -> None:
+        super().__init__(path)
+        self._files = sorted(p for p in self.path.iterdir()
+                             if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+        if not self._files:
+            raise InputError(f"folder {str(self.path)!r} holds no images ({', '.join(IMAGE_SUFFIXES)})")
+        if fps is None and require_fps:
+            raise InputError(f"folder {str(self.path)!r} is a sequence of images without timestamps: "
+                             "pass --fps (the camera frame rate)")
+        check_image_file(self._files[0])
+        first, complaint = read_image(self._files[0], cv2.IMREAD_UNCHANGED)
+        if first is None:
+            raise InputError(f"image {str(self._files[0])!r} cannot be read{because(complaint)}: "
+                             "remove or replace it")
+        if complaint:
+            self.notes.append(f"image {self._files[0].name} (the first) decoded with a warning: {complaint}")
+        self.height, self.width = first.shape[:2]
+        self._scan_folder()
+        self.fps = float(fps) if fps else float("nan")
+        self.header_frames = len(self._files)
+        if first.dtype == np.uint16:
+            self._keep_depth(first, significant_bits(first), "16-bit images")
+        self._set_roi(roi)
+
+    @property
+    def lossless(self) -> bool:
+        """Every image of the folder in a lossless format (one JPEG among them: False)."""
+        return all(p.suffix.lower() in LOSSLESS_IMAGE_SUFFIXES for p in self._files)
+
+    def _scan_folder(self) -> None:
+        """Check every image's header and structure (not its pixels) before the first frame is
+        measured, so that a truncated or mis-sized image stops the run at once, not hours into it."""
+        for file in self._files[1:]:
+            size = check_image_file(file)
+            if size != (self.width, self.height):
+                raise InputError(f"image {file.name} is {size[0]}x{size[1]} but the first is "
+                                 f"{self.width}x{self.height}: all images must have the same size")
+
+    def _frames(self, start: int, stop: int | None) -> Iterator[tuple[int, float, np.ndarray]]:
+        for index, file in enumerate(self._files[:stop]):
+            self.frames_read = index + 1
+            if index < start:
+                continue
+            image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                raise InputError(f"image {str(file)!r} cannot be read: remove or replace it")
+            if image.shape[:2] != (self.height, self.width):
+                raise InputError(
+                    f"image {file.name} is {image.shape[1]}x{image.shape[0]} but the first is "
+                    f"{self.width}x{self.height}: all images must have the same size")
+            time_s = index / self.fps if math.isfinite(self.fps) else float(index)
+            yield index, time_s, self._crop(image)
