@@ -194,14 +194,16 @@ class _FrameResult(NamedTuple):
     residual: np.ndarray  # (R,) grey levels
     camera: np.ndarray  # (R, 2) px, NaN without a background
     sigma: np.ndarray  # (R, 2) px
+    field: tuple[np.ndarray, np.ndarray] | None = None  # the mask pixels' (u, v) for --field
 
 
 class _PoiReadout:
     """Reads a method's flow of one frame against the reference at the POIs (a :class:`_FrameResult`)."""
 
     def __init__(self, reference: np.ndarray, poi_xy: np.ndarray, regions: _Regions,
-                 background: Background | None) -> None:
+                 background: Background | None, field: Any = None) -> None:
         self.reference = reference
+        self._field = field
         self._columns, self._rows = poi_xy[:, 0], poi_xy[:, 1]
         self.xs = self._columns.astype(np.float32)
         self.ys = self._rows.astype(np.float32)
@@ -222,7 +224,8 @@ class _PoiReadout:
         sigma = np.array([own[int(label)] if int(label) in own else lk.sigma(error[group])
                           for label, group, lk in zip(labels, groups, self._lks, strict=True)], np.float64)
         cdx, cdy, camera = self._compensate(flow, dx, dy)
-        return _FrameResult(cdx, cdy, residual, camera, sigma)
+        field = None if self._field is None else self._field.cut(flow, cdx, cdy)
+        return _FrameResult(cdx, cdy, residual, camera, sigma, field)
 
     def _compensate(self, flow: np.ndarray, dx: np.ndarray,
                     dy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -310,8 +313,9 @@ class _Collected:
     """The kept frames' results in frame order: the POIs' rows in a disk store, the per-frame
     values in lists."""
 
-    def __init__(self, n_points: int, store_dir: str | Path | None) -> None:
+    def __init__(self, n_points: int, store_dir: str | Path | None, field: Any = None) -> None:
         self.store = PoiStore(n_points, directory=store_dir)
+        self.field = field
         self.frames: list[int] = []
         self.times: list[float] = []
         self.residuals: list[np.ndarray] = []
@@ -326,6 +330,8 @@ class _Collected:
             self.residuals.append(result.residual)
             self.cameras.append(result.camera)
             self.sigmas.append(result.sigma)
+            if self.field is not None:
+                self.field.append(index, *result.field)
             bar.update(1)
 
 
@@ -334,7 +340,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
                 max_frames: int | None = None,
                 frames: tuple[int, int | None] | None = None, undistort: Undistort = None,
                 progress: bool = False, store_dir: str | Path | None = None,
-                background: Background | None = None, mask: np.ndarray | None = None) -> Tracks:
+                background: Background | None = None, mask: np.ndarray | None = None,
+                field: Any = None) -> Tracks:
     """Run a dense method of ``factory()`` on every frame against the reference frame.
 
     Parameters
@@ -369,6 +376,9 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         mask of labels 1..N (0: no POI) with two or more labels at the POIs measures each
         label's POIs as a region of its own (residual, uncertainty and camera motion per
         region; ``Tracks.region``), all from one flow computation per frame.
+    field : flow.field.FieldStream, optional
+        Receives every kept frame's displacement at the mask pixels, in frame order
+        (``--field``), and the reference's own where the range lacks the reference frame.
     """
     if jobs < 1:
         raise InputError(f"--jobs {jobs} must be >= 1")
@@ -380,7 +390,7 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     regions = _regions(poi_xy, mask)
     read = None if background is None else _pixels(reference.shape, background.rows, background.columns)
     pool = _MethodPool(factory, jobs, reference, mask, read)
-    readout = _PoiReadout(reference, poi_xy, regions, background)
+    readout = _PoiReadout(reference, poi_xy, regions, background, field)
     measure_chain = functools.partial(_measure_chain, pool, readout)
     in_range = start <= reference_frame and (stop is None or reference_frame < stop)
     offset = None
@@ -391,8 +401,10 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         # in its parts.
         own = measure_chain([(reference_frame, 0.0, reference, True)])[0][2]
         offset = (own.dx.astype(np.float64), own.dy.astype(np.float64))
+        if field is not None:
+            field.set_reference(*own.field)
 
-    collected = _Collected(len(poi_xy), store_dir)
+    collected = _Collected(len(poi_xy), store_dir, field)
     t1 = time.perf_counter()
     with _progress(source, start, stop, progress) as bar:
         chains = _chains(source, start, stop, undistort, reference_frame=reference_frame, chain=pool.chain)
