@@ -26,6 +26,7 @@ import numpy as np
 
 from flow import pipeline, registry
 from flow.export import add_parser as add_export_parser
+from flow.fieldplot import add_parser as add_field_plot_parser
 from flow.gui import add_parser as add_gui_parser
 from flow.gui.project import PROJECT_HELP, expand_project_argv
 from flow.io import InputError, quiet_decoder_logs
@@ -359,6 +360,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_plot)
     add_modal_parser(sub)
     add_export_parser(sub)
+    add_field_plot_parser(sub)
     add_gui_parser(sub)
     return parser
 
@@ -366,7 +368,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _claims(args: argparse.Namespace) -> list[Path]:
     """The files a command writes that a second run at the same time must not write too: its
     outputs, and the sidecar of a measurement (``--out a`` and ``--out a.csv`` share ``a.json``)."""
-    names = [getattr(args, option, None) for option in ("out", "raw_tracks", "save_poi_tracks", "field")]
+    written = ("out", "raw_tracks", "save_poi_tracks") + (("field",) if args.command in ("track", "merge") else ())
+    names = [getattr(args, option, None) for option in written]
     paths = [Path(name) for name in names if isinstance(name, str) and name]
     if args.command in ("track", "merge") and isinstance(args.out, str) and args.out:
         paths.append(Path(args.out).with_suffix(".json"))

@@ -391,6 +391,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     read = None if background is None else _pixels(reference.shape, background.rows, background.columns)
     pool = _MethodPool(factory, jobs, reference, mask, read)
     readout = _PoiReadout(reference, poi_xy, regions, background, field)
+    if field is not None:
+        field.set_image(reference)
     measure_chain = functools.partial(_measure_chain, pool, readout)
     in_range = start <= reference_frame and (stop is None or reference_frame < stop)
     offset = None

@@ -53,6 +53,7 @@ _DESCRIPTION = {
     "offset_v_px": "the same for v_px",
     "x_px": "full-frame column of each pixel (undistorted pixels with a calibration)",
     "y_px": "full-frame row of each pixel", "frame": "frame index in the video", "time_s": "frame time",
+    "reference": "the reference image over the box (grey levels as measured)",
 }
 
 
@@ -185,6 +186,12 @@ class FieldStream:
         u, v = u.astype(np.float32), v.astype(np.float32)
         u[self._poi_at], v[self._poi_at] = dx, dy
         return u, v
+
+    def set_image(self, reference: np.ndarray) -> None:
+        """Keep the reference image's box (the backdrop of ``refflow field-plot``)."""
+        if "reference" not in self._file:
+            self._file.create_dataset("reference", data=np.asarray(reference)[self.box.slices],
+                                      compression="gzip", compression_opts=GZIP_LEVEL)
 
     def set_reference(self, u: np.ndarray, v: np.ndarray) -> None:
         """The reference's own reading (a part without the reference frame measures it apart)."""
@@ -348,6 +355,8 @@ def merge_parts(final: str | Path, parts: list[str | Path]) -> FieldStream:
         stream = FieldStream(final, region_map, poi_xy, reference_frame=int(first.attrs["reference_frame"]),
                              origin_px=origin)
         stream.removed_offset = (first["offset_u_px"][()], first["offset_v_px"][()])
+        if "reference" in first:
+            stream.set_image(first["reference"][()])
         for handle in opened:
             for row, index in enumerate(handle["frame"][()]):
                 u, v = handle["u_px"][row], handle["v_px"][row]

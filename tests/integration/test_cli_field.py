@@ -48,7 +48,7 @@ def test_layout_units_and_nan_outside_the_mask(clip, tmp_path) -> None:
         assert f.attrs["format"] == "refflow-field/1" and f.attrs["complete"] == 1
         assert f.attrs["mm_per_px"] == 0.5
         n, height, width = f["u_px"].shape
-        assert n == 12 and (height, width) == (f["y_px"].shape[0], f["x_px"].shape[0])
+        assert n == 20 and (height, width) == (f["y_px"].shape[0], f["x_px"].shape[0])
         assert f["x_px"][0] == 20 and f["y_px"][0] == 16
         for name in ("u_px", "v_px", "u_mm", "v_mm", "valid"):
             dataset = f[name]
@@ -182,3 +182,60 @@ def test_a_failed_run_leaves_no_field(clip, tmp_path, monkeypatch) -> None:
     monkeypatch.setattr(field.FieldStream, "append", broken)
     assert _track(clip, tmp_path / "k", "--rect", RECT) == 130
     assert _leftovers(tmp_path) == []
+
+
+@pytest.fixture(scope="module")
+def field_file(clip, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("plot") / "f"
+    assert _track(clip, out, "--rect", RECT) == 0
+    return out.with_suffix(".h5")
+
+
+def test_field_plot_writes_map_movie_and_deflection_shape(field_file, tmp_path) -> None:
+    prefix = tmp_path / "pic"
+    assert main(["field-plot", str(field_file), "--out", str(prefix), "--hz", str(sine.HZ)]) == 0
+    for suffix in ("_map.png", "_field.gif", "_ods.png"):
+        assert (tmp_path / f"pic{suffix}").stat().st_size > 1000, suffix
+    assert main(["field-plot", str(field_file), "--out", str(prefix), "--movie", "mp4", "--frame", "3"]) == 0
+    assert (tmp_path / "pic_field.mp4").stat().st_size > 1000
+
+
+def test_the_deflection_shape_is_the_known_sine(field_file) -> None:
+    from flow.field import read_field
+    from flow.fieldplot import deflection_shape
+
+    with read_field(field_file) as field:
+        amp_u, phase_u, amp_v, _ = deflection_shape(field, sine.HZ)
+        x = field["x_px"][()]
+    # Two whole cycles of the vibration: the amplitude is the sine's |shape|, the phase flips
+    # by 180 degrees between its crests.
+    shape = sine.AMPLITUDE_PX * np.sin(2 * np.pi * x / sine.PERIOD_PX)
+    measured = np.nanmedian(amp_u, axis=0)
+    crest = np.abs(shape) > 0.9 * sine.AMPLITUDE_PX
+    assert np.median(measured[crest]) == pytest.approx(sine.AMPLITUDE_PX, rel=0.08)
+    assert np.nanmedian(amp_v) < 0.1 * sine.AMPLITUDE_PX
+    phase = np.nanmedian(phase_u, axis=0)
+    up, down = crest & (shape > 0), crest & (shape < 0)
+    gap = abs(((np.median(phase[up]) - np.median(phase[down])) + 180) % 360 - 180)
+    assert gap == pytest.approx(180, abs=10)
+
+
+@pytest.mark.parametrize("extra, said", [
+    (["--hz", "15"], "Nyquist"),
+    (["--hz", "-1"], "not a frequency"),
+    (["--frame", "99"], "--frame 99 is not in the field"),
+])
+def test_field_plot_bad_input_is_one_line_and_no_file(field_file, tmp_path, capsys, extra, said) -> None:
+    assert main(["field-plot", str(field_file), "--out", str(tmp_path / "bad"), *extra]) == 2
+    err = capsys.readouterr().err
+    assert said in err and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_field_plot_refuses_a_file_that_is_no_field(tmp_path, capsys) -> None:
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:
+        f["x"] = np.zeros(3)
+    assert main(["field-plot", str(other), "--out", str(tmp_path / "p")]) == 2
+    assert "no refflow field file" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.h5"]

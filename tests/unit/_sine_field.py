@@ -46,7 +46,7 @@ def speckle(shift_x: np.ndarray | float = 0.0, *, seed: int = 7, width: int = WI
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
-def write_clip(folder: Path, n_frames: int = 12) -> Path:
+def write_clip(folder: Path, n_frames: int = 20) -> Path:
     """PNG frames ``frame_000.png``...; frame 0 (t = 0) is the undeformed reference."""
     folder.mkdir(parents=True, exist_ok=True)
     x = np.arange(WIDTH, dtype=np.float64)
