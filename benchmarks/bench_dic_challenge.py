@@ -252,7 +252,7 @@ def main() -> None:
     jobs = [("sample14", None, sample14), ("sample3", None, sample3)]
     if args.stars:
         jobs += [("stars", name, lambda m, w, n=name: star(n, m, w)) for name in STARS if STARS[name][0].is_dir()]
-    with tempfile.TemporaryDirectory(prefix="dic_", dir=ROOT.parent) as tmp:
+    with tempfile.TemporaryDirectory(prefix="dic_") as tmp:
         work = Path(tmp)
         for method in methods:
             for key, name, measure in jobs:
