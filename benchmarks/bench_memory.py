@@ -6,6 +6,10 @@ lengths and runs `refflow track` on each in a fresh process with every pixel of 
 prints each run's peak resident memory (ru_maxrss). Asserts nothing.
 
     .venv/bin/python benchmarks/bench_memory.py [--frames 100,300,900] [--method dis]
+    .venv/bin/python benchmarks/bench_memory.py --size 3840x2160 --rect 400,880,3000,400 --field --frames 30,90
+
+``--size`` and ``--rect`` set the clip and the POIs; ``--field`` writes the whole displacement
+field too (``track --field``, streamed frame by frame), and its size.
 
 ``--pythonpath DIR`` runs another checkout's ``flow`` (e.g. an older version,
 extracted with ``git archive``) for comparison.
@@ -36,14 +40,14 @@ sys.exit(code)
 """
 
 
-def make_clip(path: Path, n_frames: int) -> None:
+def make_clip(path: Path, n_frames: int, size: tuple[int, int] = SIZE) -> None:
     rng = np.random.default_rng(0)
-    base = cv2.GaussianBlur(rng.integers(0, 256, (SIZE[1] + 20, SIZE[0] + 20)).astype(np.float32), (0, 0), 2.0)
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, SIZE, True)
+    base = cv2.GaussianBlur(rng.integers(0, 256, (size[1] + 20, size[0] + 20)).astype(np.float32), (0, 0), 2.0)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, size, True)
     for i in range(n_frames):
         shift = 1.5 * np.sin(2 * np.pi * i / 30)
         matrix = np.float32([[1, 0, shift], [0, 1, 0]])
-        image = cv2.warpAffine(base, matrix, (SIZE[0] + 20, SIZE[1] + 20), flags=cv2.INTER_CUBIC)
+        image = cv2.warpAffine(base, matrix, (size[0] + 20, size[1] + 20), flags=cv2.INTER_CUBIC)
         grey = np.clip(image[10:-10, 10:-10], 0, 255).astype(np.uint8)
         writer.write(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR))
     writer.release()
@@ -54,18 +58,28 @@ def main() -> None:
     parser.add_argument("--frames", default="100,300,900", help="comma-separated clip lengths")
     parser.add_argument("--method", default="dis")
     parser.add_argument("--pythonpath", help="run the flow package found here instead")
+    parser.add_argument("--size", default=f"{SIZE[0]}x{SIZE[1]}", help="clip size WxH")
+    parser.add_argument("--rect", help="POI rectangle X,Y,W,H (default: the whole frame)")
+    parser.add_argument("--field", action="store_true", help="also write the whole field (track --field)")
     args = parser.parse_args()
+    size = tuple(int(v) for v in args.size.split("x"))
+    rect = args.rect or f"0,0,{size[0]},{size[1]}"
+    n_points = int(np.prod([int(v) for v in rect.split(",")[2:]]))
     env = dict(os.environ)
     root = Path(__file__).resolve().parents[1]
     env["PYTHONPATH"] = os.pathsep.join(p for p in (args.pythonpath, str(root)) if p)
-    print(f"{'frames':>6} {'POIs':>7} {'tracks MB':>10} {'peak RSS MB':>12} {'wall s':>7}")
+    print(f"{'frames':>6} {'POIs':>7} {'tracks MB':>10} {'peak RSS MB':>12} {'wall s':>7}"
+          + (f" {'field MB':>9}" if args.field else ""))
     with tempfile.TemporaryDirectory(dir=root) as tmp:
         folder = Path(tmp)
         for n_frames in (int(v) for v in args.frames.split(",")):
             clip = folder / f"clip{n_frames}.avi"
-            make_clip(clip, n_frames)
-            argv = [sys.executable, "-c", CHILD, "track", str(clip), "--rect", f"0,0,{SIZE[0]},{SIZE[1]}",
+            make_clip(clip, n_frames, size)
+            field = folder / f"out{n_frames}.h5"
+            argv = [sys.executable, "-c", CHILD, "track", str(clip), "--rect", rect,
                     "--method", args.method, "--out", str(folder / f"out{n_frames}.csv"), "--no-progress"]
+            if args.field:
+                argv += ["--field", str(field)]
             if args.method == "dis":
                 argv += ["--preset", "ultrafast"]
             started = time.perf_counter()
@@ -79,10 +93,11 @@ def main() -> None:
             source = result.stderr.split("flow_from=", 1)[1].split()[0]
             if args.pythonpath and not source.startswith(str(Path(args.pythonpath).resolve())):
                 raise SystemExit(f"the run used {source}, not the flow under {args.pythonpath}")
-            n_points = SIZE[0] * SIZE[1]
             print(f"{n_frames:>6} {n_points:>7} {2 * 4 * n_frames * n_points / 1e6:>10.0f} "
-                  f"{maxrss_kib / 1024:>12.0f} {wall:>7.1f}", flush=True)
+                  f"{maxrss_kib / 1024:>12.0f} {wall:>7.1f}"
+                  + (f" {field.stat().st_size / 1e6:>9.0f}" if args.field else ""), flush=True)
             clip.unlink()
+            field.unlink(missing_ok=True)
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ import numpy as np
 
 from flow import pipeline
 from flow.export import add_parser as add_export_parser
+from flow.field.plot import add_parser as add_field_plot_parser
 from flow.gui.command import add_parser as add_gui_parser
 from flow.gui.project import PROJECT_HELP, expand_project_argv
 from flow.io.errors import InputError
@@ -83,13 +84,15 @@ def track_options(args: argparse.Namespace) -> TrackOptions:
         background=BackgroundOptions(mask=args.background_mask, rect=args.background_rect,
                                      model=args.background_model),
         scale=scale_options(args), filter=filter_options(args),
-        outputs=OutputOptions(csv=args.out, raw_tracks=args.raw_tracks, poi_tracks=args.save_poi_tracks),
+        outputs=OutputOptions(csv=args.out, raw_tracks=args.raw_tracks, poi_tracks=args.save_poi_tracks,
+                              field=args.field),
         jobs=args.jobs, progress=not args.no_progress)
 
 
 def merge_options(args: argparse.Namespace) -> MergeOptions:
     return MergeOptions(parts=tuple(args.parts), scale=scale_options(args), filter=filter_options(args),
-                        outputs=OutputOptions(csv=args.out, poi_tracks=args.save_poi_tracks))
+                        part_fields=tuple(args.part_field or ()),
+                        outputs=OutputOptions(csv=args.out, poi_tracks=args.save_poi_tracks, field=args.field))
 
 
 def cmd_track(args: argparse.Namespace) -> int:
@@ -273,6 +276,9 @@ def _add_measure_options(p: argparse.ArgumentParser, *, out_required: bool) -> N
     p.add_argument("--scale-file", help="JSON file holding a positive 'mm_per_px', or 'known_length_mm' and "
                    "'between_px' [X1, Y1, X2, Y2] (raw video pixels, like --known-length/--between)")
     p.add_argument("--save-poi-tracks", help="write the per-POI displacement matrix to this .npz")
+    p.add_argument("--field", metavar="FIELD.h5",
+                   help="write the whole displacement field (every mask pixel, every frame; HDF5, streamed; "
+                        "dense methods; see docs/formats.md)")
     p.add_argument("--filter", choices=("paper", "median", "none"),
                    help="paper: eq. 10-12 (default for dense); median: same filters, median average; "
                         "none: plain average (default for KLT, as in the paper)")
@@ -324,6 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("merge", help="join raw-tracks parts (track --frames ... --raw-tracks) into one measurement")
     p.add_argument("parts", nargs="+", help="raw-tracks .npz files of one run, contiguous frame ranges")
+    p.add_argument("--part-field", action="append", metavar="FIELD.h5",
+                   help="a part's field file (track --frames ... --field), once per part in the parts' order; "
+                        "with --field, the merged field")
     _add_measure_options(p, out_required=True)
     p.set_defaults(func=cmd_merge)
 
@@ -354,6 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_plot)
     add_modal_parser(sub)
     add_export_parser(sub)
+    add_field_plot_parser(sub)
     add_gui_parser(sub)
     return parser
 
@@ -361,7 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _claims(args: argparse.Namespace) -> list[Path]:
     """The files a command writes that a second run at the same time must not write too: its
     outputs, and the sidecar of a measurement (``--out a`` and ``--out a.csv`` share ``a.json``)."""
-    names = [getattr(args, option, None) for option in ("out", "raw_tracks", "save_poi_tracks")]
+    written = ("out", "raw_tracks", "save_poi_tracks") + (("field",) if args.command in ("track", "merge") else ())
+    names = [getattr(args, option, None) for option in written]
     paths = [Path(name) for name in names if isinstance(name, str) and name]
     if args.command in ("track", "merge") and isinstance(args.out, str) and args.out:
         paths.append(Path(args.out).with_suffix(".json"))

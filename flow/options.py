@@ -77,11 +77,13 @@ class OutputOptions:
     csv: str | None = None  # the measurement; its sidecar is <csv>.json
     raw_tracks: str | None = None  # the unfiltered part, for `refflow merge`
     poi_tracks: str | None = None  # the per-POI displacement matrix (.npz)
+    field: str | None = None  # the whole displacement field (.h5, flow/field/stream.py)
 
     def paths(self) -> list[Path]:
         """The files, in writing order (the CSV last: it is what other tools look for)."""
         return ([Path(self.raw_tracks)] if self.raw_tracks else []) \
             + ([Path(self.poi_tracks)] if self.poi_tracks else []) \
+            + ([Path(self.field)] if self.field else []) \
             + ([Path(self.csv).with_suffix(".json"), Path(self.csv)] if self.csv else [])
 
 
@@ -122,11 +124,13 @@ class MergeOptions:
 
     parts: tuple[str, ...]
     scale: ScaleOptions = ScaleOptions()
+    part_fields: tuple[str, ...] = ()  # each part's --field file, for --field
     filter: FilterOptions = FilterOptions()
     outputs: OutputOptions = OutputOptions()
 
     def input_paths(self) -> list[tuple[str, Path]]:
-        return _existing([("--scale-file", self.scale.scale_file)]) + [("a part", Path(p)) for p in self.parts]
+        return (_existing([("--scale-file", self.scale.scale_file)]) + [("a part", Path(p)) for p in self.parts]
+                + [("a part's field", Path(p)) for p in self.part_fields])
 
 
 def _existing(named: list[tuple[str, str | None]]) -> list[tuple[str, Path]]:

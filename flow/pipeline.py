@@ -155,7 +155,33 @@ def track(options: TrackOptions) -> Outcome:
     params, method = _for_source(name, params, method, setup.source)
     check_reference(setup.source, options.reference_frame, options.reference_average, setup.labels > 0,
                     setup.undistort)
-    tracks = _track_frames(options, setup, method, lambda: build_method(name, params), sparse, jobs, frames, notes)
+    field = _field_stream(options, setup, sparse, name)
+    try:
+        return _track_and_write(options, setup, method, name, params, sparse, jobs, frames, notes, read_paths,
+                                started, field)
+    finally:
+        if field is not None:
+            field.discard()
+
+
+def _field_stream(options: TrackOptions, setup: _Setup, sparse: bool, name: str) -> Any:
+    """The ``--field`` file's stream (None without one)."""
+    if not options.outputs.field:
+        return None
+    if sparse:
+        raise InputError(f"--field needs a dense method: {name} follows a few features, it has no field")
+    from flow.field.stream import FieldStream
+
+    roi = setup.source.roi
+    return FieldStream(options.outputs.field, setup.labels, setup.poi_xy, reference_frame=options.reference_frame,
+                       origin_px=(roi.x, roi.y), background=setup.background)
+
+
+def _track_and_write(options: TrackOptions, setup: _Setup, method: Any, name: str, params: dict[str, Any],
+                     sparse: bool, jobs: int, frames: tuple[int, int | None] | None, notes: list[str],
+                     read_paths: list[tuple[str, Path]], started: float, field: Any) -> Outcome:
+    tracks = _track_frames(options, setup, method, lambda: build_method(name, params), sparse, jobs, frames, notes,
+                           field)
     if not setup.scale.given:  # on the console too where a CSV's mm columns stay empty
         if options.outputs.csv:
             _note(notes, NO_SCALE_NOTE)
@@ -166,8 +192,9 @@ def track(options: TrackOptions) -> Outcome:
         notes.append(f"{name} takes 8-bit images: the {source.bit_depth}-bit data was rounded to 8 bits for it "
                      "(the default method measures at full depth)")
     run = _run_info(options, setup, tracks, name, method, sparse, jobs)
-    results = write_outputs(options.outputs, options.filter, read_paths, tracks, run, notes, setup.scale, started)
-    written = [p for p in (options.outputs.raw_tracks, options.outputs.csv) if p]
+    results = write_outputs(options.outputs, options.filter, read_paths, tracks, run, notes, setup.scale, started,
+                            field=field)
+    written = [p for p in (options.outputs.raw_tracks, options.outputs.field, options.outputs.csv) if p]
     return Outcome(name, tracks, results, written)
 
 
@@ -246,7 +273,7 @@ def _set_up(options: TrackOptions, notes: list[str], name: str, sparse: bool) ->
 
 
 def _track_frames(options: TrackOptions, setup: _Setup, method: Any, new_method: Any, sparse: bool, jobs: int,
-                  frames: tuple[int, int | None] | None, notes: list[str]) -> Any:
+                  frames: tuple[int, int | None] | None, notes: list[str], field: Any = None) -> Any:
     """The unfiltered tracks; the source's notes and the warnings raised meanwhile join ``notes``."""
     from flow.measure import driver
 
@@ -264,7 +291,7 @@ def _track_frames(options: TrackOptions, setup: _Setup, method: Any, new_method:
             tracks = driver.track_dense(setup.source, new_method, setup.poi_xy, **reference, jobs=jobs,
                                         max_frames=options.max_frames, frames=frames, undistort=setup.undistort,
                                         progress=options.progress, store_dir=store_dir,
-                                        background=setup.background, mask=setup.labels)
+                                        background=setup.background, mask=setup.labels, field=field)
     notes.extend(setup.source.notes)
     time_s, clock_notes = setup.source.clock(tracks.frame, tracks.time_s)
     for note in clock_notes:
@@ -328,6 +355,11 @@ def merge(options: MergeOptions) -> tuple[int, Outcome]:
     check_filter_options(options.filter)
     read_paths = options.input_paths()
     output_names(options.outputs, read_paths)
+    if options.part_fields and not options.outputs.field:
+        raise InputError("--part-field gives the parts' fields to merge: pass --field FIELD.h5 for the merged one")
+    if options.outputs.field and len(options.part_fields) != len(options.parts):
+        raise InputError(f"--field needs each part's field: {len(options.parts)} parts but "
+                         f"{len(options.part_fields)} --part-field (one per part, in the parts' order)")
     store_dir = Path(options.outputs.csv).resolve().parent
     tracks, metas = formats.load_raw_tracks(list(options.parts), store_dir=store_dir if store_dir.is_dir() else None)
     first = RunInfo.from_part(metas[0])
@@ -345,5 +377,15 @@ def merge(options: MergeOptions) -> tuple[int, Outcome]:
         parts=[{"file": str(p), "frames": [m["frames"]["first"], m["frames"]["stop"]]}
                for p, m in zip(options.parts, metas, strict=True)],
         timings=tracks.timings_s)
-    results = write_outputs(options.outputs, options.filter, read_paths, tracks, run, notes, scale, started)
+    field = None
+    if options.outputs.field:
+        from flow.field.stream import merge_parts
+
+        field = merge_parts(options.outputs.field, list(options.part_fields))
+    try:
+        results = write_outputs(options.outputs, options.filter, read_paths, tracks, run, notes, scale, started,
+                                field=field, field_offset_removed=True)
+    finally:
+        if field is not None:
+            field.discard()
     return len(metas), Outcome(first.method, tracks, results, [options.outputs.csv])

@@ -7,6 +7,7 @@ CSV last), so a failure or Ctrl-C leaves none of them.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -62,12 +63,14 @@ def unresolved_note(result: Any, filtering: FilterOptions) -> str:
 
 def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list[tuple[str, Path]],
                   tracks: Any, run: RunInfo, notes: list[str], scale: Scale,
-                  started: float) -> list[tuple[int, Any]]:
+                  started: float, *, field: Any = None, field_offset_removed: bool = False) -> list[tuple[int, Any]]:
     """Filter, average and write the run's outputs as one all-or-nothing set; returns each
     region's ``(label, Measurement)`` (none without a CSV).
 
     A run of several regions filters and averages each on its own and writes one row per
-    frame and region.
+    frame and region. ``field`` (a :class:`flow.field.stream.FieldStream`, with ``outputs.field``) is
+    finished with the verdicts and joins the set (its offsets already removed in a merge:
+    ``field_offset_removed``).
     """
     from flow.measure import formats
 
@@ -98,6 +101,13 @@ def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list
             tmp, final = pending.pop(0)
             with writing(final):
                 _write_poi_tracks(tmp, tracks, results, run.roi)
+        if outputs.field:
+            tmp, final = pending.pop(0)
+            with writing(final):
+                written = field.finish(tracks, results, scale.mm_per_px, run.record(),
+                                       roi_origin_px=(run.roi["x"], run.roi["y"]),
+                                       offset_removed=field_offset_removed)
+                os.replace(written, tmp)
         if outputs.csv:
             tmp, final = pending.pop(0)
             with writing(final):

@@ -200,14 +200,16 @@ class _FrameResult(NamedTuple):
     residual: np.ndarray  # (R,) grey levels
     camera: np.ndarray  # (R, 2) px, NaN without a background
     sigma: np.ndarray  # (R, 2) px
+    field: tuple[np.ndarray, np.ndarray] | None = None  # the mask pixels' (u, v) for --field
 
 
 class _PoiReadout:
     """Reads a method's flow of one frame against the reference at the POIs (a :class:`_FrameResult`)."""
 
     def __init__(self, reference: np.ndarray, poi_xy: np.ndarray, regions: _Regions,
-                 background: Background | None) -> None:
+                 background: Background | None, field: Any = None) -> None:
         self.reference = reference
+        self._field = field
         self._columns, self._rows = poi_xy[:, 0], poi_xy[:, 1]
         self.xs = self._columns.astype(np.float32)
         self.ys = self._rows.astype(np.float32)
@@ -228,7 +230,8 @@ class _PoiReadout:
         sigma = np.array([own[int(label)] if int(label) in own else lk.sigma(error[group])
                           for label, group, lk in zip(labels, groups, self._lks, strict=True)], np.float64)
         cdx, cdy, camera = self._compensate(flow, dx, dy)
-        return _FrameResult(cdx, cdy, residual, camera, sigma)
+        field = None if self._field is None else self._field.cut(flow, cdx, cdy)
+        return _FrameResult(cdx, cdy, residual, camera, sigma, field)
 
     def _compensate(self, flow: np.ndarray, dx: np.ndarray,
                     dy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -367,8 +370,9 @@ class _Collected:
     """The kept frames' results in frame order: the POIs' rows in a disk store, the per-frame
     values in lists."""
 
-    def __init__(self, n_points: int, store_dir: str | Path | None) -> None:
+    def __init__(self, n_points: int, store_dir: str | Path | None, field: Any = None) -> None:
         self.store = PoiStore(n_points, directory=store_dir)
+        self.field = field
         self.frames: list[int] = []
         self.times: list[float] = []
         self.residuals: list[np.ndarray] = []
@@ -383,6 +387,8 @@ class _Collected:
             self.residuals.append(result.residual)
             self.cameras.append(result.camera)
             self.sigmas.append(result.sigma)
+            if self.field is not None:
+                self.field.append(index, *result.field)
             bar.update(1)
 
 
@@ -409,7 +415,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
                 max_frames: int | None = None,
                 frames: tuple[int, int | None] | None = None, undistort: Undistort = None,
                 progress: bool = False, store_dir: str | Path | None = None,
-                background: Background | None = None, mask: np.ndarray | None = None) -> Tracks:
+                background: Background | None = None, mask: np.ndarray | None = None,
+                field: Any = None) -> Tracks:
     """Run a dense method of ``factory()`` on every frame against the reference frame.
 
     Parameters
@@ -444,6 +451,9 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         mask of labels 1..N (0: no POI) with two or more labels at the POIs measures each
         label's POIs as a region of its own (residual, uncertainty and camera motion per
         region; ``Tracks.region``), all from one flow computation per frame.
+    field : flow.field.stream.FieldStream, optional
+        Receives every kept frame's displacement at the mask pixels, in frame order
+        (``--field``), and the reference's own where the range lacks the reference frame.
     """
     if jobs < 1:
         raise InputError(f"--jobs {jobs} must be >= 1")
@@ -457,10 +467,14 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     pool = _MethodPool(factory, jobs)
     _warm_up(pool.methods[0], progress)
     digest = image_digest(reference)
+    if field is not None:
+        field.set_image(reference)
     reference, mask, poi_xy, origin, undistort, at_source = _to_work_area(
         source, pool.methods[0], reference, mask, poi_xy, background, undistort)
+    if field is not None:
+        field.flow_origin = (int(origin[0]), int(origin[1]))
     pool.bind(reference, mask, read)
-    readout = _PoiReadout(reference, poi_xy, regions, background)
+    readout = _PoiReadout(reference, poi_xy, regions, background, field)
     measure_chain = functools.partial(_measure_chain, pool, readout)
     in_range = start <= reference_frame and (stop is None or reference_frame < stop)
     offset = None
@@ -471,8 +485,10 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         # in its parts.
         own = measure_chain([(reference_frame, 0.0, reference, True)])[0][2]
         offset = (own.dx.astype(np.float64), own.dy.astype(np.float64))
+        if field is not None:
+            field.set_reference(*own.field)
 
-    collected = _Collected(len(poi_xy), store_dir)
+    collected = _Collected(len(poi_xy), store_dir, field)
     t1 = time.perf_counter()
     cut = source.cut(at_source) if at_source is not None else contextlib.nullcontext()
     with _progress(source, start, stop, progress) as bar, cut:
@@ -481,20 +497,29 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     t2 = time.perf_counter()
     if not collected.frames:
         raise _no_frames(source, start, stop)
+    xy = (readout.xs + np.float32(origin[0]), readout.ys + np.float32(origin[1]))
+    return _assemble(collected, source, regions, xy, reference_frame, offset, digest,
+                     {**_timings(t0, t1, t2, len(collected.frames)), **pool.chain_counts()},
+                     with_camera=background is not None)
+
+
+def _assemble(collected: _Collected, source: FrameSource, regions: _Regions, xy: tuple[np.ndarray, np.ndarray],
+              reference_frame: int, offset: tuple[np.ndarray, np.ndarray] | None, digest: str,
+              timings: dict[str, float], *, with_camera: bool) -> Tracks:
+    """A dense run's :class:`Tracks` from its collected frames (the reference's offset, eq. 10,
+    from the reference frame's own row where ``offset`` is None)."""
     dx, dy = collected.store.arrays()
     frame_index = np.asarray(collected.frames)
     if offset is None:
         row = int(np.flatnonzero(frame_index == reference_frame)[0])
         offset = (reference_offset(dx, row), reference_offset(dy, row))
     n_regions = len(regions.groups)
-    camera = np.asarray(collected.cameras, np.float64) if background is not None else None
+    camera = np.asarray(collected.cameras, np.float64) if with_camera else None
     sigma = np.asarray(collected.sigmas, np.float64)
     return Tracks(frame=frame_index, time_s=np.asarray(collected.times), dx=dx, dy=dy,
-                  residual=_per_region(collected.residuals, n_regions),
-                  x_px=readout.xs + np.float32(origin[0]), y_px=readout.ys + np.float32(origin[1]),
+                  residual=_per_region(collected.residuals, n_regions), x_px=xy[0], y_px=xy[1],
                   reference_frame=reference_frame, offset_dx=offset[0], offset_dy=offset[1],
-                  timings_s={**_timings(t0, t1, t2, len(frame_index)), **pool.chain_counts()},
-                  truncated=source.truncated, header_frames=source.header_frames,
+                  timings_s=timings, truncated=source.truncated, header_frames=source.header_frames,
                   reference_digest=digest,
                   camera_dx=None if camera is None else _per_region(camera[..., 0], n_regions),
                   camera_dy=None if camera is None else _per_region(camera[..., 1], n_regions),

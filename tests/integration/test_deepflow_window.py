@@ -116,3 +116,20 @@ def test_a_long_reach_is_matched_coarser_to_stay_within_the_memory_budget():
     assert response_bytes(window, wide) <= MATCH_BUDGET_BYTES
     near = _match_at(base, BASE_REACH_PX, (300 + 128, 500 + 128), (2160, 3840))
     assert near.downscale == base.downscale and near.ngh_rad == BASE_REACH_PX
+
+
+def test_the_field_of_frames_cut_to_the_work_area_sits_where_the_pixels_are(scene):
+    """``--field`` with frames cut to the method's work area (issue 33 over issue 31): the mask
+    pixels' field is read from the cut flow at their own place, so the mean over the kept
+    pixels is the CSV's reading, frame by frame."""
+    import h5py
+
+    out = scene["folder"] / "field.csv"
+    rows, _ = _run(scene, "field", "--field", str(out.with_suffix(".h5")))
+    with h5py.File(out.with_suffix(".h5"), "r") as f:
+        kept = f["kept"][()] == 1
+        assert kept.any() and float(f["x_px"][0]) >= AT[0]
+        for row in rows:
+            index = int(row["frame"])
+            mean = float(np.nanmean(f["u_px"][index][kept].astype(np.float64)))
+            assert mean == pytest.approx(float(row["dx_px"]), abs=2e-6), index

@@ -1,0 +1,280 @@
+"""The whole displacement field against the DIC Challenge's known fields (issue 33).
+
+Every dense method runs as a user runs it, ``refflow track FRAMES --rect ... --field F.h5``
+with its defaults, on the challenge's images (``../shared/data/real``, see its README), and
+this script reads the field file:
+
+* **Sample 14** (2048x589 speckle, u(x) a 0.1 px sine whose period shortens along x, levels
+  L1, L3, L5; truth per column in ``command.csv``): the column means of u over rows 100-488
+  (``--rect 20,100,2008,389``, columns 20-2027), their RMSE against the command, the gain
+  (least-squares slope of measured on commanded) and the shortest period read within 10 %
+  (each half period between the command's zero crossings has its own gain; the shortest
+  full period from which on every longer one reads within 10 % of the command).
+* **Sample 3** (512x512, uniform shifts 0.0-1.0 px in x and y): the bias of the CSV's
+  reading (the mean over ``--rect 56,56,400,400``) against the shift, per shift; the table
+  gives its RMS and largest value.
+* **Star 1, 2, 5** (DIC Challenge 2.0, v = 0.5 cos(2 pi (y - 250) / p(x)), p growing along x;
+  ``--stars``): the amplitude read at each column (the field's v over rows 40-460 projected on
+  the known cosine, 41-column running mean), the spatial resolution (the shortest period from
+  which on the amplitude stays within 10 % of 0.5 px) and the noise floor (the standard
+  deviation of v minus the fitted cosine where p > 100 px).
+
+    .venv/bin/python benchmarks/bench_dic_challenge.py [--methods deepflow,dis] [--stars]
+        [--json results/bench_dic_challenge.json] [--out results/bench_dic_challenge.md]
+        [--figure results/figures/dic_challenge_sample14.png]
+
+Each method's numbers are kept in the JSON as they come (a rerun skips what it holds, unless
+--again), so the slow methods can run apart. Prints a Markdown table; asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "real"
+REFFLOW = Path(sys.executable).with_name("refflow")
+DENSE = ("deepflow", "deepflow-dense", "deepmatching", "deepflow-opencv", "dis", "farneback", "tvl1")
+
+S14 = DATA / "dic_challenge1_sample14"
+S14_FRAMES = ("Sample14 Reference.tif", "Sample14 L1 Amp0.1b.tif", "Sample14 L3 Amp0.1b.tif",
+              "Sample14 L5 Amp0.1b.tif")
+S14_RECT = "20,100,2008,389"
+S14_LEVELS = ("L1", "L3", "L5")
+S3 = DATA / "dic_challenge1_sample3"
+S3_RECT = "56,56,400,400"
+STARS = {
+    "star1": (DATA / "dic_challenge2_star1", ("DIC_Challenge_Wave_Reference_NoiseFree.tif",
+                                              "DIC_Challenge_Wave_Deformed_NoiseFree.tif"),
+              lambda x: 10 + 140 * (x + 1) / 2000),
+    "star2": (DATA / "dic_challenge2_star2", ("DIC_Challenge_Wave_Reference_Noisy.tif",
+                                              "DIC_Challenge_Wave_Deformed_Noisy.tif"),
+              lambda x: 10 + 140 * (x + 1) / 2000),
+    "star5": (DATA / "dic_challenge2_star5", ("DIC_Challenge_Star_Noise_Ref.tiff", "DIC_Challenge_Star_Noise_Def.tiff"),
+              lambda x: 10 + 290 * x / 4000),
+}
+WITHIN = 0.10  # "read within 10 %"
+
+
+def frames_folder(folder: Path, names: tuple[str, ...] | list[str], into: Path) -> Path:
+    """An image folder whose sorted names put the reference first (links to the originals)."""
+    into.mkdir(parents=True, exist_ok=True)
+    for k, name in enumerate(names):
+        link = into / f"f{k:03d}{Path(name).suffix}"
+        if not link.exists():
+            link.symlink_to(folder / name)
+    return into
+
+
+def track(frames: Path, method: str, rect: str, out: Path) -> dict:
+    """``refflow track`` with the method's defaults; the field file and the run's timings."""
+    cmd = [str(REFFLOW), "track", str(frames), "--fps", "1", "--rect", rect, "--method", method, "--no-progress",
+           "--out", str(out.with_suffix(".csv")), "--field", str(out.with_suffix(".h5"))]
+    started = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}")
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    timings = sidecar["timings"]
+    models = {k: timings[k] for k in ("affine_readings", "outline_readings", "dense_readings") if k in timings}
+    return {"wall_s": time.perf_counter() - started, "models": models}
+
+
+def gain_of(measured: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.dot(measured, truth) / np.dot(truth, truth))
+
+
+def shortest_period_within(measured: np.ndarray, truth: np.ndarray, *, within: float = WITHIN) -> float:
+    """The shortest full period (px) from which on every longer half period of the command
+    reads within ``within`` of it (its own gain, least squares); NaN when none does."""
+    crossings = np.flatnonzero(np.diff(np.signbit(truth)))
+    segments = []
+    for a, b in zip(crossings[:-1], crossings[1:], strict=True):
+        part = slice(a + 1, b + 1)
+        if np.abs(truth[part]).max() > 0:
+            segments.append((2.0 * (b - a), gain_of(measured[part], truth[part])))
+    segments.sort(key=lambda s: -s[0])
+    shortest = float("nan")
+    for period, gain in segments:
+        if abs(gain - 1) > within:
+            break
+        shortest = period
+    return shortest
+
+
+def sample14(method: str, work: Path) -> dict:
+    frames = frames_folder(S14, S14_FRAMES, work / "s14")
+    out = work / f"s14_{method}"
+    run = track(frames, method, S14_RECT, out)
+    command = np.loadtxt(S14 / "command.csv", delimiter=",")
+    columns = {"L1": 1, "L3": 3, "L5": 5}
+    levels = {}
+    with h5py.File(out.with_suffix(".h5"), "r") as f:
+        x = f["x_px"][()].astype(int)
+        for k, level in enumerate(S14_LEVELS, start=1):
+            measured = np.nanmean(f["u_px"][k].astype(np.float64), axis=0)
+            truth = command[x, columns[level]]
+            levels[level] = {"rmse_px": float(np.sqrt(np.mean((measured - truth) ** 2))),
+                             "gain": gain_of(measured, truth),
+                             "shortest_period_px": shortest_period_within(measured, truth),
+                             "column_mean_u_px": [round(float(m), 5) for m in measured]}
+        levels["x_px"] = x.tolist()
+    return {**run, **levels}
+
+
+def sample3(method: str, work: Path) -> dict:
+    names = ["Sample3 Reference.tif"] + sorted(p.name for p in S3.glob("Sample3-0*.tif"))
+    frames = frames_folder(S3, names, work / "s3")
+    out = work / f"s3_{method}"
+    run = track(frames, method, S3_RECT, out)
+    truth = np.genfromtxt(S3 / "truth.csv", delimiter=",", names=True)
+    with h5py.File(out.with_suffix(".h5"), "r") as f:
+        kept = f["kept"][()] == 1
+        dx = np.array([np.nanmean(f["u_px"][k][kept]) for k in range(1, len(names))])
+        dy = np.array([np.nanmean(f["v_px"][k][kept]) for k in range(1, len(names))])
+    shift_x, shift_y = _truth_columns(truth, len(names) - 1)
+    bias = np.concatenate([dx - shift_x, dy - shift_y])
+    return {**run, "bias_rms_px": float(np.sqrt(np.mean(bias**2))), "bias_max_px": float(np.max(np.abs(bias))),
+            "bias_x_px": [round(float(b), 5) for b in dx - shift_x],
+            "bias_y_px": [round(float(b), 5) for b in dy - shift_y]}
+
+
+def _truth_columns(truth: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    names = truth.dtype.names
+    x_name = next(n for n in names if n.lower().startswith(("dx", "u", "x")))
+    y_name = next(n for n in names if n.lower().startswith(("dy", "v", "y")) and n != x_name)
+    return np.asarray(truth[x_name][-n:], float), np.asarray(truth[y_name][-n:], float)
+
+
+def star(name: str, method: str, work: Path) -> dict:
+    folder, names, period_of = STARS[name]
+    frames = frames_folder(folder, names, work / name)
+    out = work / f"{name}_{method}"
+    import cv2
+
+    height, width = cv2.imread(str(folder / names[0]), cv2.IMREAD_UNCHANGED).shape
+    run = track(frames, method, f"10,10,{width - 20},{height - 20}", out)
+    with h5py.File(out.with_suffix(".h5"), "r") as f:
+        x, y = f["x_px"][()], f["y_px"][()]
+        v = f["v_px"][1].astype(np.float64)
+    rows = (y >= 40) & (y <= 460)
+    v, y = v[rows], y[rows]
+    period = period_of(x)
+    shape = np.cos(2 * np.pi * (y[:, None] - 250) / period[None, :])
+    ok = np.isfinite(v)
+    amplitude = np.nansum(np.where(ok, v * shape, 0), axis=0) / np.sum(np.where(ok, shape**2, 0), axis=0)
+    smooth = np.convolve(amplitude, np.ones(41) / 41, mode="same")
+    ratio = smooth / 0.5
+    resolution = float("nan")
+    for k in np.argsort(-period):
+        if not (20 <= k < len(x) - 20):
+            continue
+        if abs(ratio[k] - 1) > WITHIN:
+            break
+        resolution = float(period[k])
+    long = period > 100
+    residual = v[:, long] - amplitude[None, long] * shape[:, long]
+    return {**run, "resolution_px": resolution, "noise_px": float(np.nanstd(residual)),
+            "amplitude_long_px": float(np.nanmedian(amplitude[long]))}
+
+
+def table(results: dict, methods: list[str]) -> str:
+    lines = ["| method | S14 L1 RMSE px / gain / 10 % period px | L3 | L5 | S3 bias RMS / max px | s per run (S14) |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for method in methods:
+        s14, s3 = results.get("sample14", {}).get(method), results.get("sample3", {}).get(method)
+        cells = []
+        for level in S14_LEVELS:
+            if not s14 or "error" in s14:
+                cells.append(s14["error"] if s14 and level == "L1" else "-")
+                continue
+            r = s14[level]
+            cells.append(f"{r['rmse_px']:.4f} / {r['gain']:.3f} / {r['shortest_period_px']:.0f}")
+        s3_cell = f"{s3['bias_rms_px']:.4f} / {s3['bias_max_px']:.4f}" if s3 and "error" not in s3 else "-"
+        wall = f"{s14['wall_s']:.0f}" if s14 and "wall_s" in s14 else "-"
+        lines.append(f"| {method} | {' | '.join(cells)} | {s3_cell} | {wall} |")
+    stars = results.get("stars", {})
+    if stars:
+        lines += ["", "| method | " + " | ".join(f"{s} resolution px / noise px" for s in STARS) + " |",
+                  "| --- | " + " | ".join("---" for _ in STARS) + " |"]
+        for method in methods:
+            cells = []
+            for name in STARS:
+                r = stars.get(name, {}).get(method)
+                cells.append("-" if not r or "error" in r else f"{r['resolution_px']:.0f} / {r['noise_px']:.4f}")
+            lines.append(f"| {method} | {' | '.join(cells)} |")
+    return "\n".join(lines)
+
+
+def figure(results: dict, methods: list[str], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    command = np.loadtxt(S14 / "command.csv", delimiter=",")
+    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True, layout="constrained")
+    for ax, (level, column) in zip(axes, (("L1", 1), ("L3", 3), ("L5", 5)), strict=True):
+        ax.plot(command[:, 0], command[:, column], color="black", lw=2, label="command")
+        for method in methods:
+            r = results.get("sample14", {}).get(method)
+            if r and "error" not in r:
+                ax.plot(r["x_px"], r[level]["column_mean_u_px"], lw=0.9,
+                        label=f"{method} ({r[level]['rmse_px']:.4f} px)")
+        ax.set_ylabel(f"{level}: u (px)")
+        ax.legend(fontsize=7, ncols=2, loc="lower left")
+    axes[-1].set_xlabel("column x (px)")
+    fig.suptitle("DIC Challenge Sample 14: column means of u over rows 100-488 (RMSE against the command)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--methods", default=",".join(DENSE))
+    parser.add_argument("--stars", action="store_true", help="also Star 1, 2 and 5 (slow for the numba methods)")
+    parser.add_argument("--json", default=str(ROOT / "results" / "bench_dic_challenge.json"))
+    parser.add_argument("--figure", default=str(ROOT / "results" / "figures" / "dic_challenge_sample14.png"))
+    parser.add_argument("--out", default=str(ROOT / "results" / "bench_dic_challenge.md"), help="the table")
+    parser.add_argument("--again", action="store_true", help="rerun what the JSON holds already")
+    args = parser.parse_args()
+    methods = [m for m in args.methods.split(",") if m]
+    store = Path(args.json)
+    results = json.loads(store.read_text()) if store.is_file() else {}
+    jobs = [("sample14", None, sample14), ("sample3", None, sample3)]
+    if args.stars:
+        jobs += [("stars", name, lambda m, w, n=name: star(n, m, w)) for name in STARS if STARS[name][0].is_dir()]
+    with tempfile.TemporaryDirectory(prefix="dic_") as tmp:
+        work = Path(tmp)
+        for method in methods:
+            for key, name, measure in jobs:
+                holder = results.setdefault(key, {})
+                holder = holder.setdefault(name, {}) if name else holder
+                if method in holder and not args.again:
+                    continue
+                print(f"{key} {name or ''} {method} ...", file=sys.stderr, flush=True)
+                try:
+                    holder[method] = measure(method, work)
+                except RuntimeError as err:
+                    holder[method] = {"error": str(err)}
+                store.parent.mkdir(parents=True, exist_ok=True)
+                store.write_text(json.dumps(results, indent=1))
+    shown = [m for m in DENSE if m in results.get("sample14", {}) or m in results.get("sample3", {})]
+    text = table(results, shown)
+    print(text)
+    Path(args.out).write_text(text + "\n")
+    figure(results, shown, Path(args.figure))
+
+
+if __name__ == "__main__":
+    main()
