@@ -160,8 +160,8 @@ def dic_sample(method: str, name: str, tmp: Path) -> dict:
     """One method on one DIC Challenge sample through the CLI: RMSE and largest error of dx and dy
     over every frame (the reference included, 0 by construction), 2-sigma coverage."""
     source = REAL / DIC_SAMPLES[name]
-    truth = {row["file"]: (float(row["u_px"]), float(row["v_px"]))
-             for row in csv.DictReader((source / "truth.csv").open())}
+    with (source / "truth.csv").open() as handle:
+        truth = {row["file"]: (float(row["u_px"]), float(row["v_px"])) for row in csv.DictReader(handle)}
     reference = next(source.glob("* Reference.tif"))
     folder = tmp / f"{source.name}-frames"
     if not folder.is_dir():
@@ -180,7 +180,8 @@ def dic_sample(method: str, name: str, tmp: Path) -> dict:
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
-    rows = list(csv.DictReader(out.open()))
+    with out.open() as handle:
+        rows = list(csv.DictReader(handle))
     true = np.array([(0.0, 0.0)] + [truth[f] for f in sorted(truth)])
     measured = np.array([(float(r["dx_px"]), float(r["dy_px"])) for r in rows])
     error = measured - true[: len(rows)]

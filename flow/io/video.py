@@ -227,17 +227,13 @@ class VideoSource(FrameSource):
     def lossless(self) -> bool:
         """A video in a lossless codec (:data:`LOSSLESS_FOURCCS`); False for H.264, H.265, MJPEG
         and every codec not known to be lossless."""
-        capture = cv2.VideoCapture(str(self.path))
-        try:
-            fourcc = int(capture.get(cv2.CAP_PROP_FOURCC)) & 0xFFFFFFFF
-        finally:
-            capture.release()
-        return fourcc.to_bytes(4, "little") in LOSSLESS_FOURCCS
+        return self.fourcc in LOSSLESS_FOURCCS
 
     def _read_header(self, cap: cv2.VideoCapture, fps: float | None) -> None:
         """Size, display rotation, rates and frame count from the container, as OpenCV reads them."""
         self.width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
         self.height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        self.fourcc = (int(cap.get(cv2.CAP_PROP_FOURCC)) & 0xFFFFFFFF).to_bytes(4, "little")  # the codec's tag
         header_fps = cap.get(cv2.CAP_PROP_FPS)
         self.header_fps = header_fps if header_fps and header_fps > 0 else float("nan")
         # Phones store portrait video as landscape frames plus a display rotation; OpenCV

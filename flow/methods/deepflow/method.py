@@ -658,8 +658,9 @@ class DeepFlow(DenseMethod):
 
 def _warm_up_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A small scene every kernel of the default runs on: a faintly textured bar over a
-    textured wall (so the outline, the texture and the dense flow are all fitted), its frame
-    with the bar moved by 0.6 px, and the bar's mask."""
+    textured wall (so the outline and the dense flow are fitted; the texture fit, too faint to
+    be tried here, is scipy's and has nothing to compile), its frame with the bar moved by
+    0.6 px, and the bar's mask."""
     import cv2
 
     rng = np.random.default_rng(0)
