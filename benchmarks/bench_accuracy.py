@@ -49,6 +49,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench_dic_challenge import frames_folder  # noqa: E402  (a sibling script: the DIC images as one folder)
+
 from flow.methods import registry  # noqa: E402
 from flow.methods.deepflow.member import MemberParams, _grow  # noqa: E402
 
@@ -163,11 +165,7 @@ def dic_sample(method: str, name: str, tmp: Path) -> dict:
     with (source / "truth.csv").open() as handle:
         truth = {row["file"]: (float(row["u_px"]), float(row["v_px"])) for row in csv.DictReader(handle)}
     reference = next(source.glob("* Reference.tif"))
-    folder = tmp / f"{source.name}-frames"
-    if not folder.is_dir():
-        folder.mkdir()
-        for path in [reference, *sorted(source / f for f in truth)]:
-            (folder / path.name).symlink_to(path)
+    folder = frames_folder(source, [reference.name, *sorted(truth)], tmp / f"{source.name}-frames")
     image = cv2.imread(str(reference), cv2.IMREAD_UNCHANGED)
     mask = np.zeros(image.shape[:2], np.uint8)
     top, left = (image.shape[0] - DIC_MASK_PX) // 2, (image.shape[1] - DIC_MASK_PX) // 2
