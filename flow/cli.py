@@ -184,7 +184,7 @@ def cmd_pois(args: argparse.Namespace) -> int:
             ("--calibration", args.calibration), ("--video-origin", args.video_origin)]
     check_outputs([out], [(what, Path(p)) for what, p in read if p and Path(p).exists()])
     source_given, region = source_options(args), region_options(args)
-    source = inputs.open_source(source_given, need_time=False)
+    source = inputs.source_from(source_given, need_time=False)
     undistort, _ = inputs.undistorter(source_given, source)
     labels = inputs.poi_labels(region, source, undistort)
     mask = labels > 0

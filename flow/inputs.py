@@ -13,16 +13,17 @@ from typing import Any
 
 import numpy as np
 
-from flow.io import source as sources
 from flow.io.errors import InputError
 from flow.io.frames import FrameSource, Roi
 from flow.io.jsonfiles import load_json, shown
+from flow.io.source import open_source
 from flow.options import BackgroundOptions, RegionOptions, SourceOptions
 
 
-def open_source(options: SourceOptions, *, need_time: bool = True) -> FrameSource:
+def source_from(options: SourceOptions, *, need_time: bool = True) -> FrameSource:
+    """The frames the command's source options name (``--roi``, ``--fps``, ``--allow-truncated``)."""
     roi = Roi.parse(options.roi) if options.roi else None
-    return sources.open_source(options.input, roi=roi, fps=options.fps, require_fps=need_time,
+    return open_source(options.input, roi=roi, fps=options.fps, require_fps=need_time,
                        allow_truncated=options.allow_truncated)
 
 

@@ -491,7 +491,7 @@ def reference_backdrop(csv_path: Path, points: list[dict[str, Any]]) -> tuple[np
     try:
         # The whole frame, undistorted as `refflow track` undistorts it.
         options = SourceOptions(str(video), calibration=calibration["file"] if calibration else None)
-        source = inputs.open_source(options, need_time=False)
+        source = inputs.source_from(options, need_time=False)
         undistort, _ = inputs.undistorter(options, source)
         frame = next((grey for _, _, grey in source.frames(index, index + 1)), None)
         if frame is not None and undistort is not None:

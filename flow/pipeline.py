@@ -256,7 +256,7 @@ def _set_up(options: TrackOptions, notes: list[str], name: str, sparse: bool) ->
     """Open the source, undistort, scale, mask and background, in this order."""
     from flow.measure import poi
 
-    source = inputs.open_source(options.source)
+    source = inputs.source_from(options.source)
     undistort, calibration = inputs.undistorter(options.source, source)
     calibration_info = inputs.calibration_summary(options.source, calibration)
     scale = measurement_scale(options.scale, calibration_info, tuple(source.size))
