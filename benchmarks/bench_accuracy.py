@@ -27,7 +27,10 @@ use_mask=true``); by default every registered method runs, and ``klt`` once more
 ``use_mask=true`` (KLT's features restricted to the mask, the fairest KLT on a textured region).
 
     .venv/bin/python benchmarks/bench_accuracy.py [--methods deepflow,dis] [--clips lowtex-wide]
-        [--out results/bench_accuracy.md] [--json results/bench_accuracy.json]
+        [--out results/bench_accuracy.md] [--json results/bench_accuracy.json] [--again]
+
+With --json the numbers are kept as they come and a rerun skips what the file holds (unless
+--again), so slow methods can run apart and one table shows them all.
 
 Prints a Markdown table (and writes it with --out); asserts nothing.
 """
@@ -269,7 +272,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-motorcycle", action="store_true")
     parser.add_argument("--no-dic", action="store_true", help="skip the DIC Challenge Samples 3 and 5")
     parser.add_argument("--out", help="write the Markdown table here too")
-    parser.add_argument("--json", help="write the numbers as JSON here")
+    parser.add_argument("--json", help="write the numbers as JSON here; a rerun skips what it holds (unless "
+                        "--again), so the methods can run apart and the table is made from all of them")
+    parser.add_argument("--again", action="store_true", help="rerun the --methods given even where the JSON "
+                        "holds them (the other methods' numbers are kept)")
     args = parser.parse_args(argv)
     methods = args.methods.split(",") if args.methods else registry.available() + EXTRA_METHODS
     # The painted bars of clips/ and the other scene kinds of gen/ (textured panel, whole moving
@@ -280,31 +286,49 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no bench clips under {BENCH}", file=sys.stderr)
         return 2
     clips = [] if args.clips == "none" else args.clips.split(",") if args.clips else list(folders)
-    results: dict[str, dict] = {}
-    floors: dict[str, tuple[float, float]] = {}
+    store = Path(args.json) if args.json else None
+    held = json.loads(store.read_text()) if store is not None and store.is_file() else {}
+    results: dict[str, dict] = held.get("clips", {})
+    floors: dict[str, tuple[float, float]] = held.get("floors", {})
+    moto: dict[str, dict] = held.get("motorcycle", {})
+    dic: dict[str, dict] = held.get("dic", {})
+
+    def save() -> None:
+        if store is not None:
+            store.write_text(json.dumps({"clips": results, "floors": floors, "motorcycle": moto, "dic": dic},
+                                        indent=1) + "\n")
+
     with tempfile.TemporaryDirectory() as tmp:
         for clip in clips:
             folder = folders[clip]
             _, meta, mask = read_clip(folder)
-            floors[clip] = cramer_rao(folder, meta, mask)
-            results[clip] = {}
+            if clip not in floors:
+                floors[clip] = cramer_rao(folder, meta, mask)
+            results.setdefault(clip, {})
             for name in methods:
+                if name in results[clip] and not args.again:
+                    continue
                 results[clip][name] = run_method(name, folder, meta, Path(tmp) / f"{clip}-{name}.csv")
+                save()
                 r = results[clip][name]
                 print(f"{clip:14s} {name:16s} " + (f"rmse {r['rmse_px']:.3f} slope {r['slope']:.4f} "
                       f"cov {r['coverage_2sigma']:.2f} {r['s_per_frame']:.3f} s/frame"
                       if "rmse_px" in r and "flagged" not in r else r.get("error") or r["flagged"]),
                       file=sys.stderr, flush=True)
-        dic = {} if args.no_dic or not REAL.is_dir() else {
-            sample: {name: dic_sample(name, sample, Path(tmp)) for name in methods} for sample in DIC_SAMPLES}
-    moto = {} if args.no_motorcycle else motorcycle(methods)
-    text = table(results, floors, moto, methods, dic)
+        for sample in () if args.no_dic or not REAL.is_dir() else DIC_SAMPLES:
+            dic.setdefault(sample, {})
+            for name in methods:
+                if name not in dic[sample] or args.again:
+                    dic[sample][name] = dic_sample(name, sample, Path(tmp))
+                    save()
+    if not args.no_motorcycle:
+        moto.update(motorcycle([name for name in methods if name not in moto or args.again]))
+        save()
+    shown = list(dict.fromkeys([*methods, *(name for per in results.values() for name in per)]))
+    text = table({clip: results[clip] for clip in clips}, floors, moto, shown, dic)
     print(text)
     if args.out:
         Path(args.out).write_text(text + "\n")
-    if args.json:
-        Path(args.json).write_text(json.dumps({"clips": results, "floors": floors, "motorcycle": moto, "dic": dic},
-                                              indent=1) + "\n")
     return 0
 
 
