@@ -88,6 +88,16 @@ STRIPS = 4
 # The side of the blocks whose residuals are taken as correlated (a codec's macroblock).
 CLUSTER_PX = 16
 
+# A dense flow's departure from every affine field (see deformation_z): smoothed over this
+# many px (a Gaussian's sigma, well above the dense flow's own pixel-scale noise and below
+# the shortest deformation a region's reading should follow), on the region's pixels at least
+# DEFORM_INSET_PX inside its outline (where the dense flow's smoothing drags the background's
+# motion in, a departure of the flow, not of the region).
+DEFORM_SCALE_PX = 6.0
+DEFORM_INSET_PX = 12
+# Fewer interior pixels than this: too few to tell.
+DEFORM_MIN_PIXELS = 400
+
 # The parameters a fit frees: all six, or the translation alone.
 _AFFINE = np.arange(6)
 _TRANSLATION = np.array([0, 3])
@@ -247,7 +257,7 @@ class RegionFit:
         part of each pixel's displacement, averaged over the region."""
         coefficients = self.bias_curve()
         u, v = self.field(params, self.rows, self.cols)
-        return tuple(float(np.mean(_periodic(np.mod(d, 1.0)) @ c)) for d, c in zip((u, v), coefficients, strict=True))
+        return tuple(float(np.mean(periodic_basis(np.mod(d, 1.0)) @ c)) for d, c in zip((u, v), coefficients, strict=True))
 
     def bias_curve(self, noise_grey: float = 0.0) -> np.ndarray:
         """The Fourier coefficients ``(2, 2 * BIAS_HARMONICS)`` of the fit's bias in u (against a
@@ -275,7 +285,7 @@ class RegionFit:
             spectrum = spectrum * np.maximum(0.0, 1.0 - mirrored.size * noise_grey ** 2 / np.maximum(power, 1e-30))
         fy = np.fft.fftfreq(mirrored.shape[0])[:, None]
         fx = np.fft.fftfreq(mirrored.shape[1])[None, :]
-        design = _periodic(BIAS_SHIFTS)
+        design = periodic_basis(BIAS_SHIFTS)
         current = base.copy()  # the reference, its region replaced by each shifted copy
         for axis in (0, 1):  # u against shifts along x, v along y
             errors = []
@@ -393,7 +403,46 @@ class RegionFit:
         return steps.std(axis=0, ddof=1) / np.sqrt(len(steps))
 
 
-def _periodic(fraction: np.ndarray) -> np.ndarray:
+def deformation_z(rows: np.ndarray, cols: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[float, float] | None:
+    """How far a dense flow ``(u, v)`` at a region's pixels departs from every affine field,
+    against its own noise: ``(smooth_px, fine_px)``, the rms over the region's interior of
+    its departure from its own affine least-squares fit smoothed over DEFORM_SCALE_PX
+    (a deformation the affine model does not hold: a sine, a bend of higher order), and of the
+    rest of the departure (the flow's pixel-scale noise). None where the region has too few
+    interior pixels with a finite flow to tell.
+
+    The departure is taken from the flow's own affine fit, not from the texture fit's: a
+    difference of the two means (the dense flow's own bias) is no deformation."""
+    rows = np.asarray(rows, np.intp)
+    cols = np.asarray(cols, np.intp)
+    ok = np.isfinite(u) & np.isfinite(v)
+    if ok.sum() < DEFORM_MIN_PIXELS:
+        return None
+    rows, cols = rows[ok], cols[ok]
+    r0, c0 = int(rows.min()), int(cols.min())
+    shape = (int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1)
+    dx = (cols - cols.mean()) / max(float(np.ptp(cols)), 1.0)
+    dy = (rows - rows.mean()) / max(float(np.ptp(rows)), 1.0)
+    design = np.column_stack([np.ones_like(dx), dx, dy])
+    inside = np.zeros(shape, np.float64)
+    inside[rows - r0, cols - c0] = 1.0
+    interior = ndimage.distance_transform_edt(np.pad(inside, 1))[1:-1, 1:-1] > DEFORM_INSET_PX
+    if interior.sum() < DEFORM_MIN_PIXELS:
+        return None
+    weight = ndimage.gaussian_filter(inside, DEFORM_SCALE_PX, mode="constant")
+    smooth_sq = fine_sq = 0.0
+    for component in (u, v):
+        values = np.asarray(component, np.float64)[ok]
+        departure = values - design @ np.linalg.lstsq(design, values, rcond=None)[0]
+        image = np.zeros(shape)
+        image[rows - r0, cols - c0] = departure
+        smooth = ndimage.gaussian_filter(image, DEFORM_SCALE_PX, mode="constant") / np.maximum(weight, 1e-12)
+        smooth_sq += float(np.mean(smooth[interior] ** 2))
+        fine_sq += float(np.mean((image - smooth)[interior] ** 2))
+    return float(np.sqrt(smooth_sq)), float(np.sqrt(fine_sq))
+
+
+def periodic_basis(fraction: np.ndarray) -> np.ndarray:
     """The bias curve's basis at the fractional shifts: ``sin(2 pi k d)`` and ``cos(2 pi k d) - 1``
     for k = 1 .. BIAS_HARMONICS (zero at whole pixels)."""
     phase = 2.0 * np.pi * np.asarray(fraction, np.float64)[..., None] * np.arange(1, BIAS_HARMONICS + 1)
