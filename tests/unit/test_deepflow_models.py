@@ -71,18 +71,21 @@ def test_a_strong_texture_deforming_beyond_affine_is_read_by_the_dense_flow(kind
         assert rmse < 0.002 and abs(float(np.mean(dense_flow[..., 0][poi])) - 0.4) > 0.002
 
 
-def _sliding_bar() -> tuple:
-    """A vertical bar, faintly painted (too faint to be taken as a texture), over a textured
-    wall; it runs beyond the POIs at both ends, so along it (y) the outline has no edge and
-    takes the dense flow's motion. Its paint moves exactly (Fourier shift)."""
+def _sliding_bar(paint_std: float, paint_px: float, noise_grey: float = 0.0) -> tuple:
+    """A vertical bar over a textured wall, painted with a texture of ``paint_std`` grey levels
+    smoothed over ``paint_px``; it runs beyond the POIs at both ends, so along it (y) the
+    outline has no edge and takes the dense flow's motion. Its paint moves exactly (Fourier
+    shift); each frame gets sensor noise of ``noise_grey``."""
     height, width, x0, x1, pad = 96, 160, 60, 100, 20
     wall = textured(height, width, seed=7)
-    paint = 200 + 4.0 * smooth_noise(height, width + 2 * pad, 2.5, np.random.default_rng(11))
+    paint = 150 + paint_std * smooth_noise(height, width + 2 * pad, paint_px, np.random.default_rng(11))
     gx, _ = grid(height, width)
+    rng = np.random.default_rng(5)
 
     def render(across: float, along: float) -> np.ndarray:
         cover = np.clip(np.minimum(gx + 0.5 - (x0 + across), (x1 + across) - (gx - 0.5)), 0, 1)
-        return to_u8(wall * (1 - cover) + fourier_shift(paint, across, along)[:, pad:pad + width] * cover)
+        moved = wall * (1 - cover) + fourier_shift(paint, across, along)[:, pad:pad + width] * cover
+        return to_u8(moved + rng.normal(0, noise_grey, (height, width)))
 
     poi = np.zeros((height, width), bool)
     poi[20:height - 20, x0 + 6:x1 - 6] = True
@@ -90,18 +93,31 @@ def _sliding_bar() -> tuple:
 
 
 def test_a_tracked_frame_does_not_reuse_its_keys_along_member_motion() -> None:
-    render, poi = _sliding_bar()
+    """A strongly textured bar (with sensor noise) sliding along itself by 0.6, 0.1 and -0.3 px
+    while it moves 0.8-1.0 px across: today's main took the outline (its texture fit too
+    imprecise, its background never seen standing still) with the dense flow's along motion,
+    and its tracked frames read the key's 0.347 px again in all three frames (and 0.13-0.14 px
+    across); each frame now reads its own."""
+    render, poi = _sliding_bar(12.0, 2.5, noise_grey=6.0)
     reference = render(0.0, 0.0)
     method = deepflow_module.DeepFlow()
     method.bind(reference, poi)
-    assert method.chain_length > 1 and min(method._regions[0].texture.gradient_rms) < 1.0
     method.restart()
-    method.calc(reference, render(0.8, 0.6))  # the key: its outline takes the dense flow's along motion
-    assert method.counts["why_outline_no_texture"] == 1
-    flow = method.calc(reference, render(0.9, 0.1))
-    # Measured in full, not tracked with the key's along-member motion (today's main: tracked,
-    # 0.31 px along where the bar moved 0.1).
-    assert method.counts["full_frames"] == 2 and method.counts["warm_frames"] == 0
-    assert abs(float(np.mean(flow[..., 1][poi])) - 0.1) < 0.1
-    assert abs(float(np.mean(flow[..., 0][poi])) - 0.9) < 0.05
+    truth = ((0.8, 0.6), (0.9, 0.1), (1.0, -0.3))
+    read = []
+    for across, along in truth:
+        flow = method.calc(reference, render(across, along))
+        read.append((float(np.mean(flow[..., 0][poi])), float(np.mean(flow[..., 1][poi]))))
+    read, truth = np.array(read), np.array(truth)
+    # The along motion's changes from the key (the narrow bar under noise reads its along motion a
+    # third short: 0.41 px for 0.6 at the key; main read no change at all).
+    np.testing.assert_allclose(read[1:, 1] - read[0, 1], truth[1:, 1] - truth[0, 1], atol=0.25)
+    np.testing.assert_allclose(read[:, 0], truth[:, 0], atol=0.25)
+
+
+def test_an_along_member_motion_beyond_its_uncertainty_moves() -> None:
+    sigma = (0.02, 0.1)
+    assert not deepflow_module._along_moves(None, sigma)  # the outline's own
+    assert not deepflow_module._along_moves(np.full(50, 0.08), sigma)
+    assert deepflow_module._along_moves(np.full(50, -0.2), sigma)
 
