@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import flow.methods.deepflow.method as deepflow_module
-from flow.methods.deepflow.regionfit import deformation_z
+from flow.methods.deepflow.regionfit import affine_departure
 
 sys.path.insert(0, str(Path(__file__).parent))
 import _sine_field as sine  # noqa: E402
@@ -33,17 +33,17 @@ def _speckle_pair(shift) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return reference, sine.speckle(shift), poi
 
 
-def test_deformation_z_tells_a_sine_from_noise() -> None:
+def test_affine_departure_tells_a_sine_from_noise() -> None:
     rng = np.random.default_rng(3)
     rows, cols = (a.ravel() for a in np.mgrid[0:80, 0:160])
     noise_u, noise_v = rng.normal(0, 0.02, (2, rows.size))
     affine_u = 0.3 + 0.002 * cols - 0.001 * rows  # an affine field departs from itself by nothing
-    smooth, fine = deformation_z(rows, cols, affine_u + noise_u, noise_v)
+    smooth, fine = affine_departure(rows, cols, affine_u + noise_u, noise_v)
     assert smooth < 0.2 * fine
     wave = SINE_AMPLITUDE_PX * np.sin(2 * np.pi * cols / SINE_PERIOD_PX)
-    smooth, fine = deformation_z(rows, cols, wave + noise_u, noise_v)
+    smooth, fine = affine_departure(rows, cols, wave + noise_u, noise_v)
     assert smooth > 4 * fine and abs(smooth - SINE_AMPLITUDE_PX / np.sqrt(2)) < 0.1
-    assert deformation_z(rows[:300], cols[:300], noise_u[:300], noise_v[:300]) is None  # too few
+    assert affine_departure(rows[:300], cols[:300], noise_u[:300], noise_v[:300]) is None  # too few
 
 
 @pytest.mark.parametrize("kind", ["sine", "rigid"])

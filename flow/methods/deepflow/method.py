@@ -28,7 +28,7 @@ from flow.methods.deepflow.deepmatching import (
     search_radius,
 )
 from flow.methods.deepflow.member import MemberEdges, MemberFit, context_px
-from flow.methods.deepflow.regionfit import RegionFit, RegionMotion, deformation_z
+from flow.methods.deepflow.regionfit import RegionFit, RegionMotion, affine_departure
 from flow.methods.deepflow.variational import VariationalParams, Workspace, refine
 from flow.methods.params import Param, declared, with_defaults
 
@@ -350,9 +350,9 @@ def _deforms(region: _Region, dense_u: np.ndarray, dense_v: np.ndarray, *, lossl
     texture fit's, and the outline's low-order one) can hold: its departure from its own affine
     fit, smoothed over :data:`flow.methods.deepflow.regionfit.DEFORM_SCALE_PX`, more than
     :data:`DEFORM_RATIO` times the departure's pixel-scale rest (see
-    :func:`flow.methods.deepflow.regionfit.deformation_z`) plus the floor of ``lossless``
+    :func:`flow.methods.deepflow.regionfit.affine_departure`) plus the floor of ``lossless``
     frames or a codec's."""
-    found = deformation_z(region.rows, region.cols, dense_u, dense_v)
+    found = affine_departure(region.rows, region.cols, dense_u, dense_v)
     floor = DEFORM_FLOOR_PX if lossless else DEFORM_CODEC_FLOOR_PX
     return found is not None and found[0] > DEFORM_RATIO * found[1] + floor
 
@@ -417,8 +417,10 @@ class DeepFlow(DenseMethod):
     Through a video the driver hands the frames over in chains (see ``warm``): a chain's
     first frame is measured so, and the rest track each region with the model its key chose,
     from the previous frames' motion, while their photometric mismatch stays in the chain's
-    band (an outline whose along-member motion came from the dense flow and is more than its
-    uncertainty is not tracked: its frames are measured in full, :func:`_along_moves`). The sidecar counts the readings of each model (``<model>_readings``).
+    band (on a strong texture, an outline whose along-member motion came from the dense flow
+    and is more than its uncertainty is not tracked: its frames are measured in full, see
+    :func:`_along_moves`). The sidecar counts the readings of each model
+    (``<model>_readings``) and why each was taken (``why_<reason>``, :data:`REASONS`).
 
     Parameters (keyword-only; defaults follow the papers, see
     :class:`flow.methods.deepflow.deepmatching.MatchParams` and

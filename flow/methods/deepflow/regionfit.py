@@ -90,13 +90,12 @@ STRIPS = 4
 # The side of the blocks whose residuals are taken as correlated (a codec's macroblock).
 CLUSTER_PX = 16
 
-# A dense flow's departure from every affine field (see deformation_z): smoothed over this
+# A dense flow's departure from every affine field (see affine_departure): smoothed over this
 # many px (a Gaussian's sigma: above the dense flow's own pixel-scale noise, and short enough
 # to keep most of a wave of 20 px period: the DIC Challenge Stars' waves run from 10 px; at
 # 6 px their short periods went to the rest and Star 1 read 2.7 times it, at 3 px 15 times),
-# on the region's pixels at least
-# DEFORM_INSET_PX inside its outline (where the dense flow's smoothing drags the background's
-# motion in, a departure of the flow, not of the region).
+# on the region's pixels at least DEFORM_INSET_PX inside its outline (where the dense flow's
+# smoothing drags the background's motion in: a departure of the flow, not of the region).
 DEFORM_SCALE_PX = 3.0
 DEFORM_INSET_PX = 12
 # Fewer interior pixels than this: too few to tell.
@@ -261,7 +260,7 @@ class RegionFit:
         part of each pixel's displacement, averaged over the region."""
         coefficients = self.bias_curve()
         u, v = self.field(params, self.rows, self.cols)
-        return tuple(float(np.mean(periodic_basis(np.mod(d, 1.0)) @ c)) for d, c in zip((u, v), coefficients, strict=True))
+        return tuple(float(np.mean(_periodic(np.mod(d, 1.0)) @ c)) for d, c in zip((u, v), coefficients, strict=True))
 
     def bias_curve(self, noise_grey: float = 0.0) -> np.ndarray:
         """The Fourier coefficients ``(2, 2 * BIAS_HARMONICS)`` of the fit's bias in u (against a
@@ -289,7 +288,7 @@ class RegionFit:
             spectrum = spectrum * np.maximum(0.0, 1.0 - mirrored.size * noise_grey ** 2 / np.maximum(power, 1e-30))
         fy = np.fft.fftfreq(mirrored.shape[0])[:, None]
         fx = np.fft.fftfreq(mirrored.shape[1])[None, :]
-        design = periodic_basis(BIAS_SHIFTS)
+        design = _periodic(BIAS_SHIFTS)
         current = base.copy()  # the reference, its region replaced by each shifted copy
         for axis in (0, 1):  # u against shifts along x, v along y
             errors = []
@@ -407,13 +406,13 @@ class RegionFit:
         return steps.std(axis=0, ddof=1) / np.sqrt(len(steps))
 
 
-def deformation_z(rows: np.ndarray, cols: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[float, float] | None:
+def affine_departure(rows: np.ndarray, cols: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[float, float] | None:
     """How far a dense flow ``(u, v)`` at a region's pixels departs from every affine field,
     against its own noise: ``(smooth_px, fine_px)``, the rms over the region's interior of
-    its departure from its own affine least-squares fit smoothed over DEFORM_SCALE_PX
-    (a deformation the affine model does not hold: a sine, a bend of higher order), and the
-    robust scale of the rest of the departure (the flow's pixel-scale noise). None where the region has too few
-    interior pixels with a finite flow to tell.
+    its departure from its own affine least-squares fit smoothed over DEFORM_SCALE_PX (a
+    deformation the affine model does not hold: a sine, a bend of higher order), and the
+    robust scale of the rest of the departure (the flow's pixel-scale noise). None where the
+    region has too few interior pixels with a finite flow to tell.
 
     The departure is taken from the flow's own affine fit, not from the texture fit's: a
     difference of the two means (the dense flow's own bias) is no deformation."""
@@ -449,7 +448,7 @@ def deformation_z(rows: np.ndarray, cols: np.ndarray, u: np.ndarray, v: np.ndarr
     return float(np.sqrt(smooth_sq)), float(np.sqrt(fine_sq))
 
 
-def periodic_basis(fraction: np.ndarray) -> np.ndarray:
+def _periodic(fraction: np.ndarray) -> np.ndarray:
     """The bias curve's basis at the fractional shifts: ``sin(2 pi k d)`` and ``cos(2 pi k d) - 1``
     for k = 1 .. BIAS_HARMONICS (zero at whole pixels)."""
     phase = 2.0 * np.pi * np.asarray(fraction, np.float64)[..., None] * np.arange(1, BIAS_HARMONICS + 1)
