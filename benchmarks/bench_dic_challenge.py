@@ -75,10 +75,16 @@ def frames_folder(folder: Path, names: tuple[str, ...] | list[str], into: Path) 
     return into
 
 
+# ``refflow track --jobs`` (None: its default, the cores this process may use); --jobs sets it.
+JOBS: int | None = None
+
+
 def track(frames: Path, method: str, rect: str, out: Path) -> dict:
     """``refflow track`` with the method's defaults; the field file and the run's timings."""
     cmd = [str(REFFLOW), "track", str(frames), "--fps", "1", "--rect", rect, "--method", method, "--no-progress",
            "--out", str(out.with_suffix(".csv")), "--field", str(out.with_suffix(".h5"))]
+    if JOBS is not None:
+        cmd += ["--jobs", str(JOBS)]
     started = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -247,7 +253,11 @@ def main() -> None:
     parser.add_argument("--figure", default=str(ROOT / "results" / "figures" / "dic_challenge_sample14.png"))
     parser.add_argument("--out", default=str(ROOT / "results" / "bench_dic_challenge.md"), help="the table")
     parser.add_argument("--again", action="store_true", help="rerun what the JSON holds already")
+    parser.add_argument("--jobs", type=int, help="refflow track's --jobs (default: its own); the numbers do not "
+                        "depend on it, the seconds per run do")
     args = parser.parse_args()
+    global JOBS
+    JOBS = args.jobs
     methods = [m for m in args.methods.split(",") if m]
     store = Path(args.json)
     results = json.loads(store.read_text()) if store.is_file() else {}

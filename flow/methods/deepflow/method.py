@@ -28,7 +28,7 @@ from flow.methods.deepflow.deepmatching import (
     search_radius,
 )
 from flow.methods.deepflow.member import MemberEdges, MemberFit, context_px
-from flow.methods.deepflow.regionfit import RegionFit, RegionMotion
+from flow.methods.deepflow.regionfit import RegionFit, RegionMotion, affine_departure
 from flow.methods.deepflow.variational import VariationalParams, Workspace, refine
 from flow.methods.params import Param, declared, with_defaults
 
@@ -188,6 +188,20 @@ STATIC_MIN_MOTION_PX = 0.5
 STATIC_RATIO = 0.3
 STATIC_SLACK_PX = 0.1
 
+# A strong texture's region is read by the dense flow where the dense flow shows it deforming
+# beyond an affine field (see _deforms): its departure from its own affine fit, smoothed over
+# a few pixels, more than DEFORM_RATIO times the robust scale of the departure's pixel-scale
+# rest plus a floor: DEFORM_FLOOR_PX on lossless frames, DEFORM_CODEC_FLOOR_PX on a lossy
+# codec's, whose error in a dense flow is correlated over its macroblocks (16 px) and passes
+# the smoothing as a deformation would, dozens of times the rest (the bench's H.264 clips with
+# a strong texture: up to 0.10 px smoothed, on the rotating slab; whole view 0.038, bolted
+# plate 0.074, textured panel 0.063). Lossless, DIC Challenge Sample 14 (a 0.1 px sine)
+# reads 0.06-0.07 px on its right half (the rest below 0.01), Star 1 (a 0.5 px wave) 0.32 px,
+# 15 times its rest.
+DEFORM_RATIO = 4.0
+DEFORM_FLOOR_PX = 0.005
+DEFORM_CODEC_FLOOR_PX = 0.25
+
 # An outline whose own standard uncertainty exceeds this (px) on both axes cannot resolve a
 # sub-pixel motion by its own account (the tool's limit for a clip's typical uncertainty is
 # 0.35 px): it is not taken, in a full measurement or a tracked frame. A shaded round column
@@ -205,17 +219,25 @@ REASONS = {
     "outline_texture_imprecise": "the outline; the strong texture fit is not precise enough",
     "texture_no_outline": "the strong texture however imprecise; no outline against a still background",
     "dense_only": "the dense flow; neither a strong texture nor an outline against a still background",
+    "dense_deforms": "the dense flow; the strong texture shows the region deforming beyond an affine field",
+    "outline_background_unseen": "an outline refused: a strong texture, and the background never seen "
+                                 "standing still while the member moved",
     "outline_background_moves": "an outline refused: the background beyond it moves with the member",
     "outline_imprecise": "an outline refused: its own uncertainty exceeds OUTLINE_MAX_SIGMA_PX on both axes",
 }
 # The reasons that count a refusal, not the choice a full measurement made.
-REFUSALS = ("outline_background_moves", "outline_imprecise")
+REFUSALS = ("outline_background_moves", "outline_imprecise", "outline_background_unseen")
 
 
-def _choose(affine: tuple | None, outline: tuple | None, strong: bool) -> tuple[tuple | None, str, str]:
+def _choose(affine: tuple | None, outline: tuple | None, strong: bool,
+            deforms: bool = False) -> tuple[tuple | None, str, str]:
     """The reading a region takes from its affine texture fit and its outline fit (each
     ``(u, v, (sigma_x, sigma_y))`` or None; ``strong``: the region's texture is strong enough
-    to be trusted over an outline), the model's name and why (a key of :data:`REASONS`)."""
+    to be trusted over an outline; ``deforms``: the dense flow shows the region deforming
+    beyond any affine field, see :func:`_deforms`), the model's name and why (a key of
+    :data:`REASONS`)."""
+    if strong and deforms:
+        return None, "dense", "dense_deforms"
     affine = affine if strong else None
     if affine is not None and max(affine[2]) <= TEXTURE_ENOUGH_PX:
         return affine, "affine", "texture_fixes_motion"
@@ -310,6 +332,32 @@ class _Region:
         return u, v, found.sigma_px
 
 
+def _along_moves(along: np.ndarray | None, sigma: tuple[float, float]) -> bool:
+    """Whether an outline's along-member motion, taken from the dense flow (``along``; None:
+    the outline's own), is more than its own uncertainty (``sigma``, px on x and y).
+
+    The next frames of its chain have no dense flow to take theirs from, and the key's would
+    read the key's motion again (DIC Challenge Sample 14's L3 and L5 read L1's field so, RMSE
+    0.09 px): on a strong texture, whose dense flow reads the along-member motion, they are
+    measured in full. On a faint one (the bench's painted bars) the dense flow's along-member
+    motion is no better read in one frame than in the next: measuring them in full there read
+    the bench's bend 0.0390 px RMS instead of 0.0384 (compressed 0.1907 for 0.1901), and the
+    key's is kept."""
+    return along is not None and abs(float(np.mean(along))) > max(sigma)
+
+
+def _deforms(region: _Region, dense_u: np.ndarray, dense_v: np.ndarray, *, lossless: bool) -> bool:
+    """Whether the dense flow shows the region deforming beyond what an affine field (the
+    texture fit's, and the outline's low-order one) can hold: its departure from its own affine
+    fit, smoothed over :data:`flow.methods.deepflow.regionfit.DEFORM_SCALE_PX`, more than
+    :data:`DEFORM_RATIO` times the departure's pixel-scale rest (see
+    :func:`flow.methods.deepflow.regionfit.affine_departure`) plus the floor of ``lossless``
+    frames or a codec's."""
+    found = affine_departure(region.rows, region.cols, dense_u, dense_v)
+    floor = DEFORM_FLOOR_PX if lossless else DEFORM_CODEC_FLOOR_PX
+    return found is not None and found[0] > DEFORM_RATIO * found[1] + floor
+
+
 def _background_static(flow: np.ndarray, region: _Region) -> bool | None:
     """Whether the dense ``flow`` shows the background beyond the region's outline standing
     still while the member moves (None where the member's motion is too small to tell)."""
@@ -362,12 +410,18 @@ class DeepFlow(DenseMethod):
     Each region takes (:func:`_choose`) its texture where the texture is strong
     (:data:`MIN_TEXTURE_GRADIENT`) and fixes the motion (:data:`TEXTURE_ENOUGH_PX`); else
     its outline, where the dense flow shows the background beyond it standing still while
-    the member moves (:func:`_background_static`) and the outline matches the POIs no worse
-    than the dense flow; else a strong texture however imprecise; else the dense flow.
+    the member moves (:func:`_background_static`; seen so, not only not seen moving, where the
+    texture is strong) and the outline matches the POIs no worse than the dense flow; else a
+    strong texture however imprecise; else the dense flow. A strong texture's region whose
+    dense flow deforms beyond any affine field (:func:`_deforms`: a sine, a wave) takes the
+    dense flow whatever the models say.
     Through a video the driver hands the frames over in chains (see ``warm``): a chain's
     first frame is measured so, and the rest track each region with the model its key chose,
     from the previous frames' motion, while their photometric mismatch stays in the chain's
-    band. The sidecar counts the readings of each model (``<model>_readings``).
+    band (on a strong texture, an outline whose along-member motion came from the dense flow
+    and is more than its uncertainty is not tracked: its frames are measured in full, see
+    :func:`_along_moves`). The sidecar counts the readings of each model
+    (``<model>_readings``) and why each was taken (``why_<reason>``, :data:`REASONS`).
 
     Parameters (keyword-only; defaults follow the papers, see
     :class:`flow.methods.deepflow.deepmatching.MatchParams` and
@@ -583,7 +637,7 @@ class DeepFlow(DenseMethod):
         region.restart()
         dense_u = flow[region.rows, region.cols, 0]
         dense_v = flow[region.rows, region.cols, 1]
-        affine, texture = None, None
+        affine, texture, deforms = None, None, False
         # A texture too weak to be trusted is never taken (see _choose): not fitted at all.
         strong = region.texture is not None and min(region.texture.gradient_rms) >= MIN_TEXTURE_GRADIENT
         if strong:
@@ -593,6 +647,8 @@ class DeepFlow(DenseMethod):
                 affine = region.texture_reading(texture)
             else:
                 texture = None
+            # (Frames are lossless where the bias correction is on: see bias_correction.)
+            deforms = _deforms(region, dense_u, dense_v, lossless=self._bias_on)
         outline, fit, along = None, None, None
         static = None if region.member is None else _background_static(flow, region)
         region.static_known = static is not None
@@ -611,9 +667,14 @@ class DeepFlow(DenseMethod):
                                                           dense_u, dense_v) + MATCH_SLACK:
                     outline = (u, v, sigma)
                     region.key_mismatch = edges
-        chosen, model, reason = _choose(affine, outline, strong)
+        if outline is not None and strong and static is not True:
+            # A strong texture lets the dense flow see the region's own motion: an outline is
+            # not taken over it on the word of a background never seen standing still.
+            self._count(None, "outline_background_unseen")
+            outline = None
+        chosen, model, reason = _choose(affine, outline, strong, deforms)
         self._count(model, reason)
-        if self._chaining and model == "outline":
+        if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
             region.model, region.theta, region.key_along = "outline", fit.params, along
         elif self._chaining and model == "affine":
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual

@@ -47,6 +47,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from flow.measure.robust import MAD_TO_SIGMA
+
 # At most this many of a region's pixels enter the fit (a regular subsample of a larger
 # region): a whole 4K frame's worth of POIs costs what a 170x170 region costs, and the
 # mean motion of so many pixels is far below a video's noise floor either way (the codec's
@@ -87,6 +89,17 @@ BIAS_MARGIN_PX = 24
 STRIPS = 4
 # The side of the blocks whose residuals are taken as correlated (a codec's macroblock).
 CLUSTER_PX = 16
+
+# A dense flow's departure from every affine field (see affine_departure): smoothed over this
+# many px (a Gaussian's sigma: above the dense flow's own pixel-scale noise, and short enough
+# to keep most of a wave of 20 px period: the DIC Challenge Stars' waves run from 10 px; at
+# 6 px their short periods went to the rest and Star 1 read 2.7 times it, at 3 px 15 times),
+# on the region's pixels at least DEFORM_INSET_PX inside its outline (where the dense flow's
+# smoothing drags the background's motion in: a departure of the flow, not of the region).
+DEFORM_SCALE_PX = 3.0
+DEFORM_INSET_PX = 12
+# Fewer interior pixels than this: too few to tell.
+DEFORM_MIN_PIXELS = 400
 
 # The parameters a fit frees: all six, or the translation alone.
 _AFFINE = np.arange(6)
@@ -391,6 +404,48 @@ class RegionFit:
             return np.zeros(2)
         steps = np.asarray(steps)
         return steps.std(axis=0, ddof=1) / np.sqrt(len(steps))
+
+
+def affine_departure(rows: np.ndarray, cols: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[float, float] | None:
+    """How far a dense flow ``(u, v)`` at a region's pixels departs from every affine field,
+    against its own noise: ``(smooth_px, fine_px)``, the rms over the region's interior of
+    its departure from its own affine least-squares fit smoothed over DEFORM_SCALE_PX (a
+    deformation the affine model does not hold: a sine, a bend of higher order), and the
+    robust scale of the rest of the departure (the flow's pixel-scale noise). None where the
+    region has too few interior pixels with a finite flow to tell.
+
+    The departure is taken from the flow's own affine fit, not from the texture fit's: a
+    difference of the two means (the dense flow's own bias) is no deformation."""
+    rows = np.asarray(rows, np.intp)
+    cols = np.asarray(cols, np.intp)
+    ok = np.isfinite(u) & np.isfinite(v)
+    if ok.sum() < DEFORM_MIN_PIXELS:
+        return None
+    rows, cols = rows[ok], cols[ok]
+    r0, c0 = int(rows.min()), int(cols.min())
+    shape = (int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1)
+    dx = (cols - cols.mean()) / max(float(np.ptp(cols)), 1.0)
+    dy = (rows - rows.mean()) / max(float(np.ptp(rows)), 1.0)
+    design = np.column_stack([np.ones_like(dx), dx, dy])
+    inside = np.zeros(shape, np.float64)
+    inside[rows - r0, cols - c0] = 1.0
+    interior = ndimage.distance_transform_edt(np.pad(inside, 1))[1:-1, 1:-1] > DEFORM_INSET_PX
+    if interior.sum() < DEFORM_MIN_PIXELS:
+        return None
+    weight = ndimage.gaussian_filter(inside, DEFORM_SCALE_PX, mode="constant")
+    smooth_sq = fine_sq = 0.0
+    for component in (u, v):
+        values = np.asarray(component, np.float64)[ok]
+        departure = values - design @ np.linalg.lstsq(design, values, rcond=None)[0]
+        image = np.zeros(shape)
+        image[rows - r0, cols - c0] = departure
+        smooth = ndimage.gaussian_filter(image, DEFORM_SCALE_PX, mode="constant") / np.maximum(weight, 1e-12)
+        smooth_sq += float(np.mean(smooth[interior] ** 2))
+        # The rest's robust scale (its median absolute value, as a normal's sigma): a part of
+        # the region deforming faster than the smoothing follows (a wave's shortest periods)
+        # leaves its rest large there, and is no noise of the rest of the region.
+        fine_sq += (MAD_TO_SIGMA * float(np.median(np.abs((image - smooth)[interior])))) ** 2
+    return float(np.sqrt(smooth_sq)), float(np.sqrt(fine_sq))
 
 
 def _periodic(fraction: np.ndarray) -> np.ndarray:

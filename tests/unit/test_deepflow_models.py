@@ -1,0 +1,123 @@
+"""The default's models are taken only where they hold (issue 33).
+
+A strong texture's affine fit replaces the dense field only where the dense flow shows no
+deformation beyond an affine field (a sine-deformed speckle is read by the dense flow, a
+rigidly moved one by its affine fit), and a chain's tracked frames do not reuse an
+along-member motion their key took from the dense flow (a frame whose along-member motion
+differs from its key's reads its own).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import flow.methods.deepflow.method as deepflow_module
+from flow.methods.deepflow.regionfit import affine_departure
+
+sys.path.insert(0, str(Path(__file__).parent))
+import _sine_field as sine  # noqa: E402
+from _deepflow_synth import fourier_shift, grid, smooth_noise, textured, to_u8  # noqa: E402
+
+SINE_AMPLITUDE_PX = 0.5
+SINE_PERIOD_PX = 80.0
+
+
+def _speckle_pair(shift) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    reference = sine.speckle(0.0)
+    poi = np.zeros(reference.shape, bool)
+    poi[12:84, 12:148] = True
+    return reference, sine.speckle(shift), poi
+
+
+def test_affine_departure_tells_a_sine_from_noise() -> None:
+    rng = np.random.default_rng(3)
+    rows, cols = (a.ravel() for a in np.mgrid[0:80, 0:160])
+    noise_u, noise_v = rng.normal(0, 0.02, (2, rows.size))
+    affine_u = 0.3 + 0.002 * cols - 0.001 * rows  # an affine field departs from itself by nothing
+    smooth, fine = affine_departure(rows, cols, affine_u + noise_u, noise_v)
+    assert smooth < 0.2 * fine
+    wave = SINE_AMPLITUDE_PX * np.sin(2 * np.pi * cols / SINE_PERIOD_PX)
+    smooth, fine = affine_departure(rows, cols, wave + noise_u, noise_v)
+    assert smooth > 4 * fine and abs(smooth - SINE_AMPLITUDE_PX / np.sqrt(2)) < 0.1
+    assert affine_departure(rows[:300], cols[:300], noise_u[:300], noise_v[:300]) is None  # too few
+
+
+@pytest.mark.parametrize("kind", ["sine", "rigid"])
+def test_a_strong_texture_deforming_beyond_affine_is_read_by_the_dense_flow(kind) -> None:
+    x = np.arange(sine.WIDTH, dtype=np.float64)
+    shift = SINE_AMPLITUDE_PX * np.sin(2 * np.pi * x / SINE_PERIOD_PX) if kind == "sine" else 0.4
+    reference, current, poi = _speckle_pair(shift)
+    method = deepflow_module.DeepFlow()
+    method.bind(reference, poi)
+    flow = method.calc(reference, current)
+    dense = deepflow_module.DeepFlow(member=False, texture=False)
+    dense.bind(reference, poi)
+    dense_flow = dense.calc(reference, current)
+    columns = np.nanmean(np.where(poi, flow[..., 0], np.nan)[:, 12:148], axis=0)
+    truth = np.broadcast_to(shift, x.shape)[12:148]
+    rmse = float(np.sqrt(np.mean((columns - truth) ** 2)))
+    if kind == "sine":
+        # The dense field, pixel for pixel (its mean is the region's reading), follows the sine;
+        # the affine fit read a flat 0.014 px (RMSE 0.37 px).
+        assert method.counts["why_dense_deforms"] == 1 and method.counts["affine_readings"] == 0
+        np.testing.assert_array_equal(flow[poi], dense_flow[poi])
+        assert rmse < 0.05 * SINE_AMPLITUDE_PX, rmse
+    else:  # the check can fail: a rigid motion takes the affine fit, better than the dense flow
+        assert method.counts["why_texture_fixes_motion"] == 1 and method.counts["why_dense_deforms"] == 0
+        assert rmse < 0.002 and abs(float(np.mean(dense_flow[..., 0][poi])) - 0.4) > 0.002
+
+
+def _sliding_bar(paint_std: float, paint_px: float, noise_grey: float = 0.0) -> tuple:
+    """A vertical bar over a textured wall, painted with a texture of ``paint_std`` grey levels
+    smoothed over ``paint_px``; it runs beyond the POIs at both ends, so along it (y) the
+    outline has no edge and takes the dense flow's motion. Its paint moves exactly (Fourier
+    shift); each frame gets sensor noise of ``noise_grey``."""
+    height, width, x0, x1, pad = 96, 160, 60, 100, 20
+    wall = textured(height, width, seed=7)
+    paint = 150 + paint_std * smooth_noise(height, width + 2 * pad, paint_px, np.random.default_rng(11))
+    gx, _ = grid(height, width)
+    rng = np.random.default_rng(5)
+
+    def render(across: float, along: float) -> np.ndarray:
+        cover = np.clip(np.minimum(gx + 0.5 - (x0 + across), (x1 + across) - (gx - 0.5)), 0, 1)
+        moved = wall * (1 - cover) + fourier_shift(paint, across, along)[:, pad:pad + width] * cover
+        return to_u8(moved + rng.normal(0, noise_grey, (height, width)))
+
+    poi = np.zeros((height, width), bool)
+    poi[20:height - 20, x0 + 6:x1 - 6] = True
+    return render, poi
+
+
+def test_a_tracked_frame_does_not_reuse_its_keys_along_member_motion() -> None:
+    """A strongly textured bar (with sensor noise) sliding along itself by 0.6, 0.1 and -0.3 px
+    while it moves 0.8-1.0 px across: today's main took the outline (its texture fit too
+    imprecise, its background never seen standing still) with the dense flow's along motion,
+    and its tracked frames read the key's 0.347 px again in all three frames (and 0.13-0.14 px
+    across); each frame now reads its own."""
+    render, poi = _sliding_bar(12.0, 2.5, noise_grey=6.0)
+    reference = render(0.0, 0.0)
+    method = deepflow_module.DeepFlow()
+    method.bind(reference, poi)
+    method.restart()
+    truth = ((0.8, 0.6), (0.9, 0.1), (1.0, -0.3))
+    read = []
+    for across, along in truth:
+        flow = method.calc(reference, render(across, along))
+        read.append((float(np.mean(flow[..., 0][poi])), float(np.mean(flow[..., 1][poi]))))
+    read, truth = np.array(read), np.array(truth)
+    # The along motion's changes from the key (the narrow bar under noise reads its along motion a
+    # third short: 0.41 px for 0.6 at the key; main read no change at all).
+    np.testing.assert_allclose(read[1:, 1] - read[0, 1], truth[1:, 1] - truth[0, 1], atol=0.25)
+    np.testing.assert_allclose(read[:, 0], truth[:, 0], atol=0.25)
+
+
+def test_an_along_member_motion_beyond_its_uncertainty_moves() -> None:
+    sigma = (0.02, 0.1)
+    assert not deepflow_module._along_moves(None, sigma)  # the outline's own
+    assert not deepflow_module._along_moves(np.full(50, 0.08), sigma)
+    assert deepflow_module._along_moves(np.full(50, -0.2), sigma)
+
