@@ -159,6 +159,13 @@ class _MethodPool:
         self._idle: queue.SimpleQueue = queue.SimpleQueue()
         self.methods = [factory() for _ in range(jobs)]
         self.chain = 1
+        # Set when the run stops (Ctrl-C, SIGTERM): a method that checks it (a dense method's
+        # ``stop``) abandons the frame it is measuring at its next stage, the jobs end within
+        # a fraction of a frame.
+        self.stop = threading.Event()
+        for method in self.methods:
+            if hasattr(method, "check_stop"):
+                method.stop = self.stop
 
     def bind(self, reference: np.ndarray, mask: np.ndarray, read: np.ndarray | None) -> None:
         """Bind every instance to the reference and make them available."""
@@ -300,7 +307,8 @@ def _warm_up(method: Any, progress: bool) -> None:
 def _measure_chain(pool: _MethodPool, readout: _PoiReadout, items: list[_ChainFrame], *,
                    stop: threading.Event | None = None) -> _Solved:
     """Results of the kept frames of one chain, solved in order on one method instance; none
-    once ``stop`` is set (an interrupted run stops after the frame each job is measuring)."""
+    once ``stop`` is set (an interrupted run stops after the frame each job is measuring, or
+    within it where the method checks the pool's ``stop``)."""
     with pool.lend() as method:
         if hasattr(method, "restart"):
             method.restart()
@@ -335,9 +343,11 @@ def _chains(source: FrameSource, start: int, stop: int | None, undistort: Undist
 
 
 def _run_chains(chains: Iterator[list[_ChainFrame]], measure_chain: Callable[..., _Solved],
-                collect: Callable[[_Solved], None], *, jobs: int, chain: int) -> None:
+                collect: Callable[[_Solved], None], *, jobs: int, chain: int,
+                stop: threading.Event | None = None) -> None:
     """Solve every chain, ``jobs`` at a time, and ``collect`` their results in frame order.
-    Interrupted (Ctrl-C), the jobs stop after their current frame, not their chain."""
+    Interrupted (Ctrl-C), ``stop`` is set: the jobs stop at their method's next check of it
+    (see :class:`_MethodPool`), or after their current frame, never after their chain."""
     threads_before = cv2.getNumThreads()
     try:
         if jobs == 1:
@@ -348,7 +358,7 @@ def _run_chains(chains: Iterator[list[_ChainFrame]], measure_chain: Callable[...
             # frames, or of chains of frames) keeps memory bounded and results in frame order.
             cv2.setNumThreads(1)
             bound = 2 * jobs if chain == 1 else jobs + 1
-            stop = threading.Event()
+            stop = threading.Event() if stop is None else stop
             with ThreadPoolExecutor(max_workers=jobs) as executor:
                 pending: deque = deque()
                 try:
@@ -493,7 +503,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     cut = source.cut(at_source) if at_source is not None else contextlib.nullcontext()
     with _progress(source, start, stop, progress) as bar, cut:
         chains = _chains(source, start, stop, undistort, reference_frame=reference_frame, chain=pool.chain)
-        _run_chains(chains, measure_chain, functools.partial(collected.add, bar=bar), jobs=jobs, chain=pool.chain)
+        _run_chains(chains, measure_chain, functools.partial(collected.add, bar=bar), jobs=jobs, chain=pool.chain,
+                    stop=pool.stop)
     t2 = time.perf_counter()
     if not collected.frames:
         raise _no_frames(source, start, stop)

@@ -16,6 +16,7 @@ averaging are shared steps outside the methods. A method module imports this mod
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -60,6 +61,13 @@ CROP = Param("crop", "bool", True, "solve only around the pixels read (their bou
 # this margin: room for the pyramid's coarse levels and the smoothing to settle before the POIs
 # (and for a matching's search, which may ask for more; see :meth:`DenseMethod.window_margin`).
 CROP_MARGIN_PX = 64
+
+
+class Stopped(Exception):
+    """A frame abandoned because the run is stopping (Ctrl-C, SIGTERM): raised in a job's thread
+    by :meth:`DenseMethod.check_stop`, while the driver unwinds; nobody reads its result."""
+
+
 class DenseMethod(Method):
     """Base class of dense reference-frame methods: implement :meth:`_solve`.
 
@@ -82,6 +90,10 @@ class DenseMethod(Method):
     kind = "dense"
     parameters: tuple[Param, ...] = (CROP,)
     last_sigmas_px: dict[int, tuple[float, float]] | None = None
+    # Set by the driver (one event for all its jobs): set when the run is stopping. A method
+    # whose frame takes long calls :meth:`check_stop` between its stages, so that Ctrl-C does
+    # not wait for the frames the jobs are measuring.
+    stop: threading.Event | None = None
 
     def __init__(self, *, crop: bool = True, **params: Any) -> None:
         if not isinstance(crop, bool):
@@ -108,6 +120,11 @@ class DenseMethod(Method):
         margin = self.window_margin(reference.shape)
         if margin is not None:
             self._window = box_window(reference.shape, self._needed_box, margin)
+
+    def check_stop(self) -> None:
+        """Raise :class:`Stopped` if the run is stopping (see :attr:`stop`)."""
+        if self.stop is not None and self.stop.is_set():
+            raise Stopped("the run is stopping")
 
     def window_with(self, margin: int | None) -> tuple[slice, slice] | None:
         """The window around the pixels read with ``margin`` px of context (None: the whole

@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
@@ -615,12 +616,17 @@ def _run_both(first, second):
     return result, future.result()
 
 
+def _no_check() -> None:
+    pass
+
+
 def _centres(n: int) -> np.ndarray:
     return ATOMIC * np.arange(n, dtype=np.float32) + (ATOMIC - 1) / 2.0
 
 
 def deep_matching(
-    reference: np.ndarray, current: np.ndarray, params: MatchParams | None = None
+    reference: np.ndarray, current: np.ndarray, params: MatchParams | None = None, *,
+    checkpoint: Callable[[], None] | None = None,
 ) -> MatchGrid:
     """Quasi-dense matches from ``reference`` to ``current``.
 
@@ -629,6 +635,9 @@ def deep_matching(
     reference, current : ndarray (H, W), uint8 or float32
         Grey images of one shape.
     params : MatchParams, optional
+    checkpoint : callable, optional
+        Called between the matching's stages; it raises to abandon the matching (a run that
+        is stopping, :meth:`flow.methods.base.DenseMethod.check_stop`).
 
     Returns
     -------
@@ -656,8 +665,10 @@ def deep_matching(
         raise ValueError(
             f"image {reference.shape[1]}x{reference.shape[0]} is too small to match at downscale {ds}"
         )
+    check = checkpoint if checkpoint is not None else _no_check
     f1 = _descriptor_planes(im1, params)
     f2 = _descriptor_planes(im2, params)
+    check()
     ny, nx, radius = _radius_cells(params, reference.shape)
     D = 2 * radius + 1
     n1, n2 = _patch_norms(f1), _patch_norms(f2)
@@ -669,6 +680,7 @@ def deep_matching(
     _run_both(
         *(partial(_atomic_both, f1, f2, n1, n2, radius, a, b, forward, backward) for a, b in halves)
     )
+    check()
     (dx, dy, corr), backward_matches = _run_both(
         partial(_match_from_responses, forward, params),
         partial(_match_from_responses, backward, params) if params.reciprocal else None,

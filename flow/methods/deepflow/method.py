@@ -586,7 +586,7 @@ class DeepFlow(DenseMethod):
                whole_shape: tuple[int, ...]) -> np.ndarray:
         if self._var.beta > 0:
             match = _match_at(self._match, self.last_reach_px, reference.shape, whole_shape)
-            grid = deep_matching(reference, current, match)
+            grid = deep_matching(reference, current, match, checkpoint=self.check_stop)
             match_flow, match_weight = densify(grid, reference.shape, nearest=True)
             return refine(
                 reference,
@@ -595,8 +595,9 @@ class DeepFlow(DenseMethod):
                 match_flow=match_flow,
                 match_weight=match_weight,
                 workspace=self._workspace,
+                checkpoint=self.check_stop,
             )
-        return refine(reference, current, self._var, workspace=self._workspace)
+        return refine(reference, current, self._var, workspace=self._workspace, checkpoint=self.check_stop)
 
     def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         check_pair(reference, current)
@@ -615,6 +616,7 @@ class DeepFlow(DenseMethod):
             self.counts["full_frames"] += 1
             flow = self._dense_reaching(reference, current)
         for region, warm in zip(regions, tracked, strict=True):
+            self.check_stop()
             found = warm if warm is not None else self._full(reference, current, flow, region)
             if found is not None:
                 u, v, self.last_sigmas_px[region.label] = found
@@ -801,6 +803,7 @@ class DeepMatchingDense(DenseMethod):
                whole_shape: tuple[int, ...]) -> np.ndarray:
         # Bound and cropping: the base reach (no chain to follow the motion from); else the frame's.
         reach = BASE_REACH_PX if self._crop_on and self._bound_shape is not None else None
-        grid = deep_matching(reference, current, _match_at(self._match, reach, reference.shape, whole_shape))
+        grid = deep_matching(reference, current, _match_at(self._match, reach, reference.shape, whole_shape),
+                             checkpoint=self.check_stop)
         flow, _ = densify(grid, reference.shape, nearest=self._nearest)
         return flow

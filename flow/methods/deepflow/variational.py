@@ -37,6 +37,7 @@ References
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -741,23 +742,6 @@ def _outer_iteration(
         _sor(du, dv, E, S, coef, n_sor - n, omega, chunk)
 
 
-@njit(cache=True, error_model="numpy", nogil=True)
-def _solve_level(
-    level, data, W, delta, gamma, eps2, n_outer, n_sor, omega, chunk, du, dv, E, S, T, a, coef
-):
-    """Packed flow increments ``du``, ``dv`` (zero on entry) of one pyramid level.
-
-    ``n_outer`` fixed-point iterations freeze the robust weights at the
-    current flow and solve the linearised system with ``n_sor`` SOR sweeps.
-    ``E`` and ``S`` must be zero on entry; ``T``, ``a`` and ``coef`` are
-    scratch.
-    """
-    for _outer in range(n_outer):
-        _outer_iteration(
-            level, data, du, dv, T, a, E, S, coef, delta, gamma, eps2, W, n_sor, omega, chunk
-        )
-
-
 def _sor_chunk(width: int, n_sor: int) -> int:
     """Sweeps per pass over memory so that the rows in flight fit ``_SOR_CACHE_BYTES``."""
     row_bytes = 4 * (4 + _N_COEF) * max(width, 1)
@@ -825,28 +809,28 @@ def _solve(
     data: np.ndarray,
     h: int,
     w: int,
+    checkpoint: Callable[[], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Packed increments of one level (see :func:`_solve_level`)."""
+    """Packed flow increments ``du``, ``dv`` of one pyramid level.
+
+    ``n_outer`` fixed-point iterations freeze the robust weights at the current flow and
+    solve the linearised system with ``n_sor`` SOR sweeps, each iteration one kernel call
+    with the ``checkpoint`` before it: a large level's solve takes seconds, and a run that
+    is stopping must not wait for it.
+    """
     shape = (h + 2, 2, _packed_width(w))
     n_sor = int(params.n_sor)
-    zeroed = [ws.array(name, shape, zero=True) for name in ("du", "dv", "E", "S")]
-    _solve_level(
-        level,
-        data,
-        w,
-        float(params.delta),
-        float(params.gamma),
-        float(params.eps**2),
-        int(params.n_outer),
-        n_sor,
-        float(params.omega),
-        _sor_chunk(w, n_sor),
-        *zeroed,
-        ws.array("T", (h + 2, 2, 2, shape[2])),
-        ws.array("a", shape),
-        ws.array("coef", (h + 2, _N_COEF) + shape[1:]),
-    )
-    return zeroed[0], zeroed[1]
+    # du, dv (the increments) and E, S (the links) start at zero; T, a and coef are scratch.
+    du, dv, E, S = (ws.array(name, shape, zero=True) for name in ("du", "dv", "E", "S"))
+    T, a = ws.array("T", (h + 2, 2, 2, shape[2])), ws.array("a", shape)
+    coef = ws.array("coef", (h + 2, _N_COEF) + shape[1:])
+    chunk = _sor_chunk(w, n_sor)
+    for _outer in range(int(params.n_outer)):
+        if checkpoint is not None:
+            checkpoint()
+        _outer_iteration(level, data, du, dv, T, a, E, S, coef, float(params.delta), float(params.gamma),
+                         float(params.eps**2), w, n_sor, float(params.omega), chunk)
+    return du, dv
 
 
 def _normalised_pair(reference: np.ndarray, current: np.ndarray,
@@ -896,6 +880,7 @@ def refine(
     match_flow: np.ndarray | None = None,
     match_weight: np.ndarray | None = None,
     workspace: Workspace | None = None,
+    checkpoint: Callable[[], None] | None = None,
 ) -> np.ndarray:
     """Coarse-to-fine minimisation of the DeepFlow energy.
 
@@ -908,6 +893,9 @@ def refine(
         Dense rasterised matches ``w'`` and their weights ``c * phi`` in [0, 1].
     workspace : Workspace, optional
         Scratch arrays to reuse (one per thread); a fresh one by default.
+    checkpoint : callable, optional
+        Called before each pyramid level and each fixed-point iteration; it raises to abandon
+        the solve (a run that is stopping, :meth:`flow.methods.base.DenseMethod.check_stop`).
 
     Returns
     -------
@@ -936,6 +924,8 @@ def refine(
         matches = np.ascontiguousarray(match_flow, dtype=np.float32)
         weights = _Pyramid(np.float32(0.5 * params.beta) * match_weight.astype(np.float32))
     for h, w, scale in reversed(levels):
+        if checkpoint is not None:
+            checkpoint()
         flow_scale = (w / flow.shape[1], h / flow.shape[0])
         if flow_scale != (1.0, 1.0):
             flow = cv2.resize(flow, (w, h), interpolation=cv2.INTER_LINEAR)
@@ -966,6 +956,6 @@ def refine(
             data,
             level,
         )
-        du, dv = _solve(ws, params, level, data, h, w)
+        du, dv = _solve(ws, params, level, data, h, w, checkpoint)
         flow = _add_increment(flow, du, dv)
     return flow
