@@ -198,14 +198,27 @@ def _track_and_write(options: TrackOptions, setup: _Setup, method: Any, name: st
     return Outcome(name, tracks, results, written)
 
 
+# A lossy stream whose encoder did not write its quality (a phone's hardware encoder, a JPEG
+# folder) is taken as libx264's default, about a phone's quality: the codec floor of the texture
+# readings' sigma is measured at it (see flow.methods.deepflow.codecfloor).
+DEFAULT_CRF = 23.0
+
+
 def _for_source(name: str, params: dict[str, Any], method: Any, source: Any) -> tuple[dict[str, Any], Any]:
     """A method's parameters that depend on the input, resolved from it where the user left them
-    (``bias_correction``: on for lossless frames only, see :attr:`flow.io.frames.FrameSource.lossless`),
+    (``bias_correction``: on for lossless frames only, see :attr:`flow.io.frames.FrameSource.lossless`;
+    ``codec_crf``: a lossy stream's quality as its encoder wrote it, :data:`DEFAULT_CRF` where it did not),
     and the method built with them; the sidecar records the value taken."""
     declared = {param.name for param in getattr(method, "parameters", ())}
-    if "bias_correction" not in declared or params.get("bias_correction") is not None:
+    resolved = {}
+    if "bias_correction" in declared and params.get("bias_correction") is None:
+        resolved["bias_correction"] = source.lossless
+    if "codec_crf" in declared and params.get("codec_crf") is None and not source.lossless:
+        crf = getattr(source, "codec_crf", None)
+        resolved["codec_crf"] = DEFAULT_CRF if crf is None else crf
+    if not resolved:
         return params, method
-    params = {**params, "bias_correction": source.lossless}
+    params = {**params, **resolved}
     return params, build_method(name, params)
 
 

@@ -182,6 +182,13 @@ class FrameSource:
         return False
 
     @property
+    def codec_crf(self) -> float | None:
+        """The constant rate factor a lossy H.264 stream says it was encoded with (x264 writes
+        its settings into the stream); None where the frames are lossless or the encoder did not
+        say."""
+        return None
+
+    @property
     def size(self) -> tuple[int, int]:
         """Full frame ``(width, height)``."""
         return self.width, self.height

@@ -31,6 +31,9 @@ __all__ = ["DISPLAY_ROTATIONS", "VideoSource", "diagnose_unreadable", "open_vide
 # frame rate variable.
 VFR_SHARE = 0.1
 VFR_SLACK_S = 0.0015
+# x264 writes its settings (``x264 - core ... crf=18.0 ...``) into the first frame's SEI; a
+# container holds it within its first megabytes (before or after the index).
+X264_SEARCH_BYTES = 4 << 20
 
 
 # OpenCV's display rotations (CAP_PROP_ORIENTATION_META) as cv2.rotate codes.
@@ -86,6 +89,19 @@ def _ffmpeg_report(path: Path) -> tuple[str | None, int | None]:
         return None, None
     packets = [ln for ln in counted.stdout.splitlines() if ln.strip() and not ln.startswith("#")]
     return opened.stderr, len(packets)
+
+
+def x264_crf(path: Path) -> float | None:
+    """The ``crf`` x264 wrote into the stream's settings (its SEI text), None where the stream
+    holds no such text within :data:`X264_SEARCH_BYTES` (another encoder: a phone's hardware
+    encoder does not say)."""
+    with path.open("rb") as handle:
+        head = handle.read(X264_SEARCH_BYTES)
+    start = head.find(b"x264 - core")
+    if start < 0:
+        return None
+    found = re.search(rb"\bcrf=([0-9]+(?:\.[0-9]+)?)", head[start:start + 4096])
+    return float(found.group(1)) if found else None
 
 
 def _starts_like_mp4(path: Path) -> bool:
@@ -228,6 +244,10 @@ class VideoSource(FrameSource):
         """A video in a lossless codec (:data:`LOSSLESS_FOURCCS`); False for H.264, H.265, MJPEG
         and every codec not known to be lossless."""
         return self.fourcc in LOSSLESS_FOURCCS
+
+    @property
+    def codec_crf(self) -> float | None:
+        return None if self.lossless else x264_crf(self.path)
 
     def _read_header(self, cap: cv2.VideoCapture, fps: float | None) -> None:
         """Size, display rotation, rates and frame count from the container, as OpenCV reads them."""

@@ -192,9 +192,11 @@ class _MethodPool:
     def chain_counts(self) -> dict[str, float]:
         """Where the time went, for a method that keeps ``counts`` (a dict: frames it measured in
         full and frames it tracked, ...; warm-up frames of a part included), summed over the
-        instances."""
+        instances; a length (a key ending in ``_px``: each instance measures it alike) is the
+        largest of theirs."""
         counts = [getattr(m, "counts", None) or {} for m in self.methods]
-        return {key: float(sum(c.get(key, 0) for c in counts)) for key in counts[0]}
+        return {key: float(max(c.get(key, 0) for c in counts) if key.endswith("_px") else
+                           sum(c.get(key, 0) for c in counts)) for key in counts[0]}
 
 
 class _FrameResult(NamedTuple):

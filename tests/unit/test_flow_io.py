@@ -346,3 +346,31 @@ def test_lossless_frames_are_told_from_a_lossy_codecs(tmp_path) -> None:
     assert open_source(folder, fps=10).lossless
     cv2.imwrite(str(folder / "03.jpg"), np.full((12, 16), 200, np.uint8))
     assert not open_source(folder, fps=10).lossless  # one JPEG among them
+
+
+def test_a_lossy_streams_quality_is_read_for_the_texture_sigmas_codec_floor(tmp_path) -> None:
+    """x264 writes its crf into the stream; the pipeline hands it to the default's ``codec_crf``
+    (the texture readings' codec floor), DEFAULT_CRF where a lossy stream does not say, and
+    nothing for lossless frames."""
+    import subprocess
+
+    import imageio_ffmpeg
+
+    from flow.methods import registry
+    from flow.pipeline import DEFAULT_CRF, _for_source
+
+    def encode(name: str, *codec: str):
+        path = tmp_path / name
+        subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-v", "error", "-y", "-f", "lavfi", "-i",
+                        "testsrc=size=64x48:rate=10", "-t", "0.5", *codec, str(path)], check=True)
+        return open_source(path)
+
+    x264, mjpeg, ffv1 = (encode("a.mp4", "-c:v", "libx264", "-crf", "21.5"), encode("b.avi", "-c:v", "mjpeg"),
+                         encode("c.mkv", "-c:v", "ffv1"))
+    assert (x264.codec_crf, mjpeg.codec_crf, ffv1.codec_crf) == (21.5, None, None)
+    method = registry.get_method("deepflow")
+    for source, crf in ((x264, 21.5), (mjpeg, DEFAULT_CRF), (ffv1, None)):
+        params, built = _for_source("deepflow", {}, method, source)
+        assert params.get("codec_crf") == crf and built._codec_crf == crf
+    params, _ = _for_source("deepflow", {"codec_crf": 30.0}, method, x264)
+    assert params["codec_crf"] == 30.0  # the user's value stands

@@ -182,3 +182,34 @@ def test_the_default_measures_a_mask_of_more_than_32767_pixels() -> None:
     assert abs(float(np.mean(flow[mask, 0])) - 0.4) < 0.03
     assert abs(float(np.mean(flow[mask, 1])) + 0.2) < 0.03
     assert method.counts["affine_readings"] == 1
+
+
+def test_a_lossy_codecs_error_is_measured_into_the_texture_sigma_and_a_lossless_ones_is_not() -> None:
+    """The codec floor (flow.methods.deepflow.codecfloor) is the error libx264 leaves in the
+    fit of the region on copies of it shifted by known amounts: a few hundredths of a pixel at
+    a phone's quality, where the fit's own sigma says a few thousandths (an error common to the
+    region: the bench's H.264 clips had 2-sigma coverage 0.22-0.37 without it); nothing at
+    crf 0 (lossless), so the floor is the codec's and not the fit's own error. A texture
+    reading's sigma gets it in quadrature; an outline's, and lossless frames', stay as they are."""
+    from flow.methods.deepflow.codecfloor import codec_floor
+    from flow.methods.deepflow.method import _Region, _TextureSigma
+
+    reference = to_u8(textured(96, 128, seed=5)).astype(np.float64)
+    rows, cols = _region(reference.shape, (24, 72, 32, 96))
+    assert max(codec_floor(reference, rows, cols, 0.0)) < 0.005
+    lossy = codec_floor(reference, rows, cols, 23.0)
+    assert min(lossy) > 0.015
+    own = RegionFit(reference, rows, cols).fit(to_u8(shifted(reference, 0.3, -0.2)), np.zeros(6)).sigma_px
+    assert max(own) < 0.2 * min(lossy)  # what the fit alone cannot see
+
+    mask = np.zeros(reference.shape, bool)
+    mask[rows, cols] = True
+    region = _Region.of(reference, mask, 1, member=False, texture=True, bias_correction=False, codec_crf=23.0)
+    reported = region.reported_sigma(_TextureSigma(own))
+    assert np.allclose(reported, np.hypot(own, region.codec_floor_px))
+    assert np.allclose(region.codec_floor_px, lossy)
+    assert region.reported_sigma((0.01, 0.02)) == (0.01, 0.02)  # an outline's or the dense flow's
+    lossless = _Region.of(reference, mask, 1, member=False, texture=True)
+    assert lossless.reported_sigma(_TextureSigma(own)) == tuple(own)
+    with pytest.raises(ValueError, match="crf"):
+        codec_floor(reference, rows, cols, 60.0)

@@ -14,12 +14,14 @@ References
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Any
 
 import numpy as np
 
 from flow.measure.photometric import sample
 from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
+from flow.methods.deepflow.codecfloor import codec_floor
 from flow.methods.deepflow.deepmatching import (
     MatchParams,
     deep_matching,
@@ -248,6 +250,11 @@ def _choose(affine: tuple | None, outline: tuple | None, strong: bool,
     return None, "dense", "dense_only"
 
 
+class _TextureSigma(tuple):
+    """A texture fit's own sigma ``(sigma_x, sigma_y)``: the reading it goes with came from the
+    texture, whose codec floor (see :meth:`_Region.reported_sigma`) is added once it is chosen."""
+
+
 @dataclasses.dataclass
 class _Region:
     """One region of the POI mask: its member's edges, its texture, and where its chain stands."""
@@ -268,10 +275,13 @@ class _Region:
     affine_before: np.ndarray | None = None  # and of the frame before it
     key_residual: float = float("nan")  # the texture fit's residual at the chain's key
     static_known: bool = False  # the chain's key saw the background stand still while the member moved
+    reference: np.ndarray | None = None  # kept for the codec floor (None: the frames are lossless)
+    codec_crf: float | None = None  # the lossy stream's quality (see flow.methods.deepflow.codecfloor)
+    codec_floor_px: tuple[float, float] | None = None  # measured on the first texture reading
 
     @classmethod
     def of(cls, reference: np.ndarray, mask: np.ndarray, label: int, *, member: bool,
-           texture: bool, bias_correction: bool = True) -> _Region:
+           texture: bool, bias_correction: bool = True, codec_crf: float | None = None) -> _Region:
         rows, cols = np.nonzero(mask)
         height, width = reference.shape
         edges = MemberEdges.from_reference(reference, mask) if member else None
@@ -284,8 +294,10 @@ class _Region:
             inward_y = np.where(edges.vertical, edges.py - 0.5 * edges.side, edges.py)
             prior_rows = np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1)
             prior_cols = np.clip(np.rint(inward_x).astype(np.intp), 0, width - 1)
+        lossy = fit is not None and codec_crf is not None
         return cls(label, edges, fit, rows, cols, prior_rows, prior_cols,
-                   float(np.median(reference[mask])) or 1.0)
+                   float(np.median(reference[mask])) or 1.0, reference=reference if lossy else None,
+                   codec_crf=codec_crf if lossy else None)
 
     def restart(self) -> None:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
@@ -329,7 +341,19 @@ class _Region:
 
     def texture_reading(self, found: RegionMotion) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
         u, v = self.texture.field(found.params, self.rows, self.cols)
-        return u, v, found.sigma_px
+        return u, v, _TextureSigma(found.sigma_px)
+
+    def reported_sigma(self, sigma: tuple[float, float]) -> tuple[float, float]:
+        """The sigma a reading reports: a texture reading's with the codec's error added in
+        quadrature (the fit's own sigma does not see an error common to the region, which a
+        lossy codec leaves; :func:`flow.methods.deepflow.codecfloor.codec_floor`), measured on
+        this region the first time it is needed. Other readings' and lossless frames' as they are."""
+        if not isinstance(sigma, _TextureSigma) or self.codec_crf is None:
+            return tuple(sigma)
+        if self.codec_floor_px is None:
+            floor = codec_floor(self.reference, self.rows, self.cols, self.codec_crf)
+            self.codec_floor_px = tuple(f if np.isfinite(f) else 0.0 for f in floor)
+        return tuple(float(np.hypot(s, f)) for s, f in zip(sigma, self.codec_floor_px, strict=True))
 
 
 def _along_moves(along: np.ndarray | None, sigma: tuple[float, float]) -> bool:
@@ -423,6 +447,12 @@ class DeepFlow(DenseMethod):
     :func:`_along_moves`). The sidecar counts the readings of each model
     (``<model>_readings``) and why each was taken (``why_<reason>``, :data:`REASONS`).
 
+    On a lossy stream (``codec_crf``) a texture reading's sigma also holds the error the codec
+    leaves in the region's fit, which the fit's own sigma cannot see (common to the region):
+    measured once per region on the reference shifted by known amounts and passed through
+    libx264 (:mod:`flow.methods.deepflow.codecfloor`); the sidecar's timings say it
+    (``codec_floor_x_px``, ``codec_floor_y_px``) and what it cost (``codec_floor_s``).
+
     Parameters (keyword-only; defaults follow the papers, see
     :class:`flow.methods.deepflow.deepmatching.MatchParams` and
     :class:`flow.methods.deepflow.variational.VariationalParams`)
@@ -438,6 +468,12 @@ class DeepFlow(DenseMethod):
         frames given as arrays; ``refflow track`` makes it on for lossless input (image folders
         of TIFF/PNG/BMP/PGM, camera files, FFV1 and other lossless video) and off for a lossy
         codec's, whose own interpolation the correction does not know.
+    codec_crf : float or None
+        The H.264 quality (crf, 0..51) of a lossy stream: a texture reading's sigma gets the
+        codec's error measured at it (see above). None (default): none added; ``refflow track``
+        takes it from a lossy stream's x264 settings (``DEFAULT_CRF`` of
+        :mod:`flow.pipeline` where the encoder did not write them) and leaves it None for
+        lossless input.
     warm : bool
         Track each region from frame to frame within a chain of :data:`CHAIN_LENGTH` frames,
         verified by the photometric mismatch (default True; False: every frame measured in
@@ -469,11 +505,14 @@ class DeepFlow(DenseMethod):
         Param("bias_correction", "bool", None, "take the texture fit's own sub-pixel bias, measured on the "
               "reference, off its readings", optional=True,
               none_means="on where the frames are lossless (images, camera files, FFV1), off for a lossy codec"),
+        Param("codec_crf", "float", None, "the lossy stream's H.264 quality: the texture readings' sigma "
+              "gets the error libx264 at this crf leaves in the region's fit", low=0.0, high=51.0,
+              optional=True, none_means="no codec floor (frames taken as lossless)"),
         CROP, *declared(MatchParams), *declared(VariationalParams))
 
     def __init__(self, *, preset: str = "default", member: bool | None = None,
                  texture: bool | None = None, crop: bool = True, warm: bool = True,
-                 bias_correction: bool | None = None, **params: Any) -> None:
+                 bias_correction: bool | None = None, codec_crf: float | None = None, **params: Any) -> None:
         merged = _resolve(preset, params)
         self._match, self._var = _split(merged)
         for label, value, optional in (("member", member, True), ("texture", texture, True),
@@ -495,7 +534,8 @@ class DeepFlow(DenseMethod):
         # sums every instance's counts into the sidecar's timings.
         # (``reach_widened``: dense solves done again with a longer reach, see WIDEN_SHARE.)
         self.counts = dict.fromkeys(("full_frames", "warm_frames", "outline_readings", "affine_readings",
-                                     "dense_readings", "reach_widened",
+                                     "dense_readings", "reach_widened", "codec_floor_s",
+                                     "codec_floor_x_px", "codec_floor_y_px",
                                      *(f"why_{reason}" for reason in REASONS)), 0)
         # The matching's reach (see BASE_REACH_PX): the chain's POIs' latest motion (px, None:
         # none seen yet), the reach of the latest dense solve (the window it took is
@@ -508,10 +548,11 @@ class DeepFlow(DenseMethod):
         self._regions: list[_Region] = []  # one per region of the mask (see bind)
         super().__init__(
             preset=preset, member=self._member_on, texture=self._texture_on, crop=crop, warm=warm,
-            bias_correction=bias_correction,
+            bias_correction=bias_correction, codec_crf=codec_crf,
             **dataclasses.asdict(self._match),
             **dataclasses.asdict(self._var)
         )
+        self._codec_crf = None if codec_crf is None else float(codec_crf)  # checked against its Param above
 
     def bind(self, reference: np.ndarray, mask: np.ndarray, *, read: np.ndarray | None = None) -> None:
         super().bind(reference, mask, read=read)
@@ -534,7 +575,8 @@ class DeepFlow(DenseMethod):
                 self._regions = []
                 return
             self._regions.append(_Region.of(reference, region, int(label), member=self._member_on,
-                                            texture=self._texture_on, bias_correction=self._bias_on))
+                                            texture=self._texture_on, bias_correction=self._bias_on,
+                                            codec_crf=self._codec_crf))
         if self._warm_on and read is None:
             self.chain_length = CHAIN_LENGTH
 
@@ -619,12 +661,25 @@ class DeepFlow(DenseMethod):
             self.check_stop()
             found = warm if warm is not None else self._full(reference, current, flow, region)
             if found is not None:
-                u, v, self.last_sigmas_px[region.label] = found
+                u, v, sigma = found
+                self.last_sigmas_px[region.label] = self._reported_sigma(region, sigma)
                 flow[region.rows, region.cols, 0] = u
                 flow[region.rows, region.cols, 1] = v
         if self._chaining:
             self._motion_px = _poi_motion(flow, self._poi_rows, self._poi_cols)
         return flow
+
+    def _reported_sigma(self, region: _Region, sigma: tuple[float, float]) -> tuple[float, float]:
+        """A region's reported sigma (see :meth:`_Region.reported_sigma`); the codec floor it
+        measured and the time it took go to the counts (the sidecar's timings)."""
+        measured = region.codec_floor_px
+        started = time.perf_counter()
+        reported = region.reported_sigma(sigma)
+        if measured is None and region.codec_floor_px is not None:
+            self.counts["codec_floor_s"] += time.perf_counter() - started
+            for axis, floor in zip("xy", region.codec_floor_px, strict=True):
+                self.counts[f"codec_floor_{axis}_px"] = max(self.counts[f"codec_floor_{axis}_px"], floor)
+        return reported
 
     def _count(self, model: str | None, reason: str | None = None) -> None:
         if model is not None:

@@ -22,7 +22,8 @@ criterion: gain and offset fall out).
   each reading (:meth:`RegionFit.bias_curve`), where the frames are lossless.
 * Uncertainty: the clustered (sandwich) covariance over blocks of a codec's macroblock size,
   and no less than the scatter of the translations of strips of the region; neither sees an
-  error common to the whole region (a codec's quantised motion), which stays open.
+  error common to the whole region (a codec's quantised motion): on a lossy stream the default
+  adds that, measured on the region (:mod:`flow.methods.deepflow.codecfloor`).
 
 The fit needs a starting warp within the basin of the criterion (a pixel or two for fine
 texture, more for coarse): the dense flow's affine least-squares fit over the region, or the

@@ -1,0 +1,109 @@
+"""The error a lossy codec leaves in a region's texture reading, measured on the region itself.
+
+A codec's error is common to the whole region (it rebuilds each block from a reference frame
+with motion vectors quantised to a quarter pixel and drops residuals below its quantiser step),
+so the fit's own uncertainty, which comes from the scatter of the residuals within the frame,
+does not see it: on the bench's H.264 clips the texture fit's sigma was 0.004-0.009 px where its
+readings were 0.02-0.05 px off (2-sigma coverage 0.22-0.37).
+
+The floor is measured, not assumed: the region of the reference (with a margin) is shifted by
+known sub-pixel amounts along a circle (in Fourier space, as the bias curve of
+:class:`~flow.methods.deepflow.regionfit.RegionFit` does), encoded with libx264 at the stream's
+own quality (its ``crf``), decoded and fitted like any frame; the rms of the fit's error against
+the known shifts is the floor, per axis. It is added in quadrature to the texture fit's sigma,
+so it only widens it.
+"""
+
+from __future__ import annotations
+
+import subprocess
+
+import numpy as np
+
+from flow.methods.deepflow.regionfit import RegionFit
+
+# The shifted copies: FLOOR_FRAMES frames along a circle of FLOOR_RADIUS_PX, one turn in
+# FLOOR_PERIOD_FRAMES frames: a radius of H.264's motion-vector step (a quarter pixel), so that
+# the shifts fall at every phase within one step, where the codec's rounding of the motion
+# differs (a half-pixel circle lands on the step's grid in most frames and its error is
+# nothing there). A motion a codec must predict from frame to frame, as a structure's.
+FLOOR_FRAMES = 24
+FLOOR_RADIUS_PX = 0.25
+FLOOR_PERIOD_FRAMES = 12
+# Reference kept around the region's bounding box (the fit's window and the codec's blocks).
+FLOOR_MARGIN_PX = 24
+
+
+def shifted_copies(crop: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """``crop`` (H, W) shifted exactly by each ``(dx, dy)`` of ``shifts`` (N, 2), as 8-bit frames
+    (mirrored before the Fourier shift, so that the shift's wrap-around stays outside)."""
+    height, width = crop.shape
+    mirrored = np.pad(np.asarray(crop, np.float64), ((0, height), (0, width)), mode="symmetric")
+    spectrum = np.fft.fft2(mirrored)
+    fy = np.fft.fftfreq(2 * height)[:, None]
+    fx = np.fft.fftfreq(2 * width)[None, :]
+    frames = [np.real(np.fft.ifft2(spectrum * np.exp(-2j * np.pi * (dx * fx + dy * fy))))[:height, :width]
+              for dx, dy in shifts]
+    return np.clip(np.rint(frames), 0, 255).astype(np.uint8)
+
+
+def x264_round_trip(frames: np.ndarray, crf: float) -> np.ndarray | None:
+    """``frames`` (N, H, W) uint8, even H and W, encoded with libx264 (its default preset and GOP,
+    B-frames included; one thread: the same bytes every run) at ``crf`` and decoded; None where
+    the bundled ffmpeg is missing or fails."""
+    count, height, width = frames.shape
+    try:
+        import imageio_ffmpeg
+
+        exe = imageio_ffmpeg.get_ffmpeg_exe()
+        encoded = subprocess.run(
+            [exe, "-nostdin", "-v", "error", "-f", "rawvideo", "-pix_fmt", "gray", "-s", f"{width}x{height}",
+             "-r", "30", "-i", "-", "-c:v", "libx264", "-threads", "1", "-crf", f"{crf:g}",
+             "-pix_fmt", "yuv420p", "-f", "h264", "-"],
+            input=frames.tobytes(), capture_output=True, timeout=120, check=True).stdout
+        decoded = subprocess.run([exe, "-nostdin", "-v", "error", "-f", "h264", "-i", "-", "-f", "rawvideo",
+                                  "-pix_fmt", "gray", "-"],
+                                 input=encoded, capture_output=True, timeout=120, check=True).stdout
+    except (ImportError, RuntimeError, OSError, subprocess.SubprocessError):
+        return None
+    if len(decoded) != frames.size:
+        return None
+    return np.frombuffer(decoded, np.uint8).reshape(count, height, width)
+
+
+def codec_floor(reference: np.ndarray, rows: np.ndarray, cols: np.ndarray, crf: float) -> tuple[float, float]:
+    """The rms error ``(u, v)`` (px) of the texture fit of the region ``rows, cols`` of
+    ``reference`` on copies of it shifted by known amounts and passed through libx264 at
+    ``crf`` (see the module's docstring); ``(nan, nan)`` where it cannot be measured (no
+    encoder, a region too small, fits that do not converge)."""
+    if not (np.isfinite(crf) and 0 <= crf <= 51):
+        raise ValueError(f"crf must be a number in 0..51, got {crf!r}")
+    rows = np.asarray(rows, np.intp)
+    cols = np.asarray(cols, np.intp)
+    failed = (float("nan"), float("nan"))
+    height, width = reference.shape
+    r0, c0 = max(int(rows.min()) - FLOOR_MARGIN_PX, 0), max(int(cols.min()) - FLOOR_MARGIN_PX, 0)
+    r1 = min(int(rows.max()) + FLOOR_MARGIN_PX + 1, height)
+    c1 = min(int(cols.max()) + FLOOR_MARGIN_PX + 1, width)
+    r1 -= (r1 - r0) % 2  # yuv420p: even sides
+    c1 -= (c1 - c0) % 2
+    inside = (rows < r1) & (cols < c1)
+    if inside.sum() < 8 or r1 - r0 < 16 or c1 - c0 < 16:
+        return failed
+    phase = 2.0 * np.pi * np.arange(FLOOR_FRAMES) / FLOOR_PERIOD_FRAMES
+    shifts = FLOOR_RADIUS_PX * np.column_stack([np.sin(phase), np.cos(phase) - 1.0])  # (0, 0) first
+    decoded = x264_round_trip(shifted_copies(reference[r0:r1, c0:c1], shifts), crf)
+    if decoded is None:
+        return failed
+    # The decoded first copy is the reference, as a decoded frame is in a measurement.
+    fit = RegionFit(decoded[0].astype(np.float64), rows[inside] - r0, cols[inside] - c0, bias_correction=False)
+    errors = []
+    for frame, (dx, dy) in zip(decoded[1:], shifts[1:], strict=True):
+        # Started at the known shift: the floor is the error at the criterion's minimum, not the
+        # fit's reach (a chain starts each frame near its motion).
+        found = fit.fit(frame.astype(np.float64), np.array([dx, 0.0, 0.0, dy, 0.0, 0.0]))
+        if found.converged:
+            errors.append((found.params[0] - dx, found.params[3] - dy))
+    if len(errors) < FLOOR_FRAMES // 2:
+        return failed
+    return tuple(float(x) for x in np.sqrt(np.mean(np.square(errors), axis=0)))
