@@ -66,9 +66,11 @@ def test_a_strong_texture_deforming_beyond_affine_is_read_by_the_dense_flow(kind
         assert method.counts["why_dense_deforms"] == 1 and method.counts["affine_readings"] == 0
         np.testing.assert_array_equal(flow[poi], dense_flow[poi])
         assert rmse < 0.05 * SINE_AMPLITUDE_PX, rmse
-    else:  # the check can fail: a rigid motion takes the affine fit, better than the dense flow
+    else:  # the check can fail: a rigid motion takes the affine fit
         assert method.counts["why_texture_fixes_motion"] == 1 and method.counts["why_dense_deforms"] == 0
-        assert rmse < 0.002 and abs(float(np.mean(dense_flow[..., 0][poi])) - 0.4) > 0.002
+        # (The dense flow reads this shift 0.0005 px long since its warp interpolates with the
+        # B-spline, 0.003 px and more before; the affine fit's columns are within 0.0004 px.)
+        assert rmse < 0.002
 
 
 def _sliding_bar(paint_std: float, paint_px: float, noise_grey: float = 0.0) -> tuple:
@@ -121,3 +123,31 @@ def test_an_along_member_motion_beyond_its_uncertainty_moves() -> None:
     assert not deepflow_module._along_moves(np.full(50, 0.08), sigma)
     assert deepflow_module._along_moves(np.full(50, -0.2), sigma)
 
+
+
+G1 = Path(__file__).resolve().parents[2] / ".." / "shared" / "bench" / "gen" / "g1-textured-panel"
+
+
+@pytest.mark.skipif(not (G1 / "clip.mp4").exists(), reason="../shared/bench/gen not beside the project")
+def test_a_tracked_texture_fit_caught_off_the_motion_is_measured_in_full() -> None:
+    """The bench's photo-textured panel moves 1.0 px to the key and 1.4 px more in the next
+    frame. Tracked from the key's motion, the affine fit converged to -1.92 px where the panel
+    is at -2.41, with a robust residual (0.095 grey levels on the 41 % of pixels its weights
+    kept) within the key's band; over all its pixels the residual is 5.8 grey levels, the key's
+    0.93, and the frame is now measured in full (-2.50: the full measurement's 0.09 px error
+    on this fast frame is the same with either warp of the dense flow)."""
+    import cv2
+
+    from flow.io.video import VideoSource
+
+    source = VideoSource(G1 / "clip.mp4")
+    frames = [frame for _, (_, _, frame) in zip(range(3), source.frames(), strict=False)]
+    poi = cv2.imread(str(G1 / "mask.png"), cv2.IMREAD_GRAYSCALE) > 0
+    truth = np.loadtxt(G1 / "truth.csv", delimiter=",", skiprows=1)[:3, 2]
+    # As `refflow track` builds it for this lossy stream (flow.pipeline._for_source).
+    method = deepflow_module.DeepFlow(bias_correction=False, codec_crf=source.codec_crf or 23)
+    method.bind(frames[0], poi)
+    method.restart()
+    read = [float(np.mean(method.calc(frames[0], f)[..., 0][poi])) for f in frames]
+    assert method.counts["affine_readings"] == 3
+    np.testing.assert_allclose(read, truth - truth[0], atol=0.12)
