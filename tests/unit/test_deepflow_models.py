@@ -151,3 +151,24 @@ def test_a_tracked_texture_fit_caught_off_the_motion_is_measured_in_full() -> No
     read = [float(np.mean(method.calc(frames[0], f)[..., 0][poi])) for f in frames]
     assert method.counts["affine_readings"] == 3
     np.testing.assert_allclose(read, truth - truth[0], atol=0.12)
+
+
+@pytest.mark.parametrize("across", [-4.0, -25.0])
+def test_the_background_a_member_moved_over_does_not_vote_on_whether_it_stands_still(across) -> None:
+    """A bar moved ``-across`` px to the left over a still wall: the reference's wall within
+    that distance of its left outline is hidden in the frame, and a dense flow gives it the
+    bar's motion there. The background check samples the wall 6 + half the motion beyond the
+    outlines; at 25 px the left side's samples (89 profiles, the right side 86) lie in the
+    hidden band and read as the background moving (the bench's bar swinging 35 px took the
+    dense flow 0.5-0.7 px short instead of its outline in a fifth of its frames); they no
+    longer vote."""
+    render, poi = _sliding_bar(1.0, 6.0)
+    reference = render(0.0, 0.0)
+    region = deepflow_module._Region.of(reference, poi, 1, member=True, texture=False)
+    flow = np.zeros(reference.shape + (2,), np.float32)
+    gx, _ = grid(*reference.shape)
+    flow[..., 0] = np.where((gx >= 57 + across) & (gx < 103), across, 0.0)  # bar and hidden wall
+    assert deepflow_module._background_static(flow, region) is True
+    # The check can fail: a wall that moves along with the bar (a whole moving view).
+    flow[..., 0] = across
+    assert deepflow_module._background_static(flow, region) is False

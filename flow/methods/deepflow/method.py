@@ -192,6 +192,8 @@ BACKGROUND_DRAG = 0.5
 STATIC_MIN_MOTION_PX = 0.5
 STATIC_RATIO = 0.3
 STATIC_SLACK_PX = 0.1
+# A background sample within this of the member's advanced outline counts as hidden (blur).
+HIDDEN_MARGIN_PX = 2.0
 
 # A strong texture's region is read by the dense flow where the dense flow shows it deforming
 # beyond an affine field (see _deforms): its departure from its own affine fit, smoothed over
@@ -392,18 +394,24 @@ def _background_static(flow: np.ndarray, region: _Region) -> bool | None:
     still while the member moves (None where the member's motion is too small to tell)."""
     member = region.member
     height, width = flow.shape[:2]
-    inside = flow[region.prior_rows, region.prior_cols].astype(np.float64)
-    inside = inside[np.all(np.isfinite(inside), axis=1)]
+    at_profiles = flow[region.prior_rows, region.prior_cols].astype(np.float64)
+    inside = at_profiles[np.all(np.isfinite(at_profiles), axis=1)]
     if inside.shape[0] < 3:
         return None
     moved = float(np.hypot(*np.median(inside, axis=0)))
     if moved < STATIC_MIN_MOTION_PX:
         return None
-    offset = (BACKGROUND_OFFSET_PX + BACKGROUND_DRAG * moved) * member.side
+    distance = BACKGROUND_OFFSET_PX + BACKGROUND_DRAG * moved
+    offset = distance * member.side
     out_x = np.clip(np.rint(np.where(member.vertical, member.px, member.px + offset)), 0, width - 1)
     out_y = np.clip(np.rint(np.where(member.vertical, member.py + offset, member.py)), 0, height - 1)
     outside = flow[out_y.astype(np.intp), out_x.astype(np.intp)].astype(np.float64)
-    outside = outside[np.all(np.isfinite(outside), axis=1)]
+    # Where the member advanced over the background by about the sample's distance or more, the
+    # reference's background there is hidden in the frame and its flow is the member's or none
+    # (a bar swung 27 px: its leading side read as background moving, and the dense flow, 0.5-0.7 px
+    # short, was taken instead of the outline): such profiles do not vote.
+    advance = member.side * np.where(member.vertical, at_profiles[:, 1], at_profiles[:, 0])
+    outside = outside[np.all(np.isfinite(outside), axis=1) & ~(advance + HIDDEN_MARGIN_PX >= distance)]
     if outside.shape[0] < 3:
         return None
     return float(np.hypot(*np.median(outside, axis=0))) <= STATIC_RATIO * moved + STATIC_SLACK_PX
