@@ -151,7 +151,7 @@ def test_fused_setup_and_sweeps_equal_the_stages_run_in_turn():
     variational._prepare_level(
         image, np.roll(image, 1, axis=1), flow, (1.0, 1.0), 0.8 * flow, (1.0, 1.0),
         np.full((height, width), 4.0, np.float32), np.full((height, width), 0.5, np.float32),
-        0.25, np.empty((13, height, width), np.float32), data, level,
+        0.25, np.empty((13, height, width), np.float32), data, level, True,
     )  # fmt: skip
     results = []
     for fused in (True, False):
@@ -280,3 +280,50 @@ def test_a_texture_too_weak_to_be_taken_is_not_fitted(monkeypatch):
     method.bind(reference, poi)
     method.calc(reference, frames[0])
     assert calls
+
+
+def _fine_speckle(height, width, seed=5):
+    # A periodic speckle with content up to half the sampling rate (white noise through a
+    # 0.8 px Gaussian, in the Fourier domain), as DIC images have.
+    rng = np.random.default_rng(seed)
+    fy, fx = np.fft.fftfreq(height)[:, None], np.fft.fftfreq(width)[None, :]
+    gain = np.exp(-2 * (np.pi * 0.8) ** 2 * (fx**2 + fy**2))
+    noise = np.real(np.fft.ifft2(np.fft.fft2(rng.standard_normal((height, width))) * gain))
+    return 40.0 * noise / noise.std() + 128.0
+
+
+def _fourier_shift(image, dx):
+    # ``image`` moved by dx px toward +x, exactly for a band-limited periodic image.
+    fx = np.fft.fftfreq(image.shape[1])[None, :]
+    return np.real(np.fft.ifft2(np.fft.fft2(image) * np.exp(-2j * np.pi * fx * dx)))
+
+
+def test_bspline_warp_returns_the_image_at_whole_pixels_and_interpolates_a_shift():
+    image = _fine_speckle(48, 64).astype(np.float32)
+    coef = np.empty_like(image)
+    variational._bspline_coefficients(image, coef)
+    out, inside = np.empty_like(image), np.empty_like(image)
+    variational._warp(coef, np.zeros((48, 64, 2), np.float32), out, inside, True)
+    np.testing.assert_allclose(out, image, atol=1e-3)
+    # Sampling at x + 0.3 must give the image moved by -0.3 px (away from the border).
+    shift = np.dstack([np.full((48, 64), 0.3), np.zeros((48, 64))]).astype(np.float32)
+    truth = _fourier_shift(image.astype(np.float64), -0.3)[8:-8, 8:-8]
+    errors = {}
+    for bspline in (True, False):
+        variational._warp(coef if bspline else image, shift, out, inside, bspline)
+        errors[bspline] = np.abs(out[8:-8, 8:-8] - truth).mean()
+    # On this speckle (std 40 grey levels) the cubic convolution is off by 2.2 on average, the spline by half that.
+    assert errors[True] < 0.6 * errors[False], errors
+
+
+@pytest.mark.parametrize("dx", [0.1, 0.25])
+def test_subpixel_shift_of_a_fine_speckle_is_read_without_interpolation_bias(dx):
+    # With the cubic-convolution warp this read 24 % (0.1 px) and 12 % (0.25 px) long, DIC
+    # Challenge Sample 14's speckle shifted 0.1 px 9 %; with the B-spline 3.4 % and 2.2 % here.
+    reference = _fine_speckle(96, 160)
+    current = _fourier_shift(reference, dx)
+    flow = variational.refine(reference.astype(np.float32), current.astype(np.float32),
+                              variational.VariationalParams())
+    got = float(flow[16:-16, 16:-16, 0].mean())
+    assert abs(got - dx) < 0.05 * dx, got
+    assert abs(float(flow[16:-16, 16:-16, 1].mean())) < 0.002

@@ -66,9 +66,11 @@ def test_a_strong_texture_deforming_beyond_affine_is_read_by_the_dense_flow(kind
         assert method.counts["why_dense_deforms"] == 1 and method.counts["affine_readings"] == 0
         np.testing.assert_array_equal(flow[poi], dense_flow[poi])
         assert rmse < 0.05 * SINE_AMPLITUDE_PX, rmse
-    else:  # the check can fail: a rigid motion takes the affine fit, better than the dense flow
+    else:  # the check can fail: a rigid motion takes the affine fit
         assert method.counts["why_texture_fixes_motion"] == 1 and method.counts["why_dense_deforms"] == 0
-        assert rmse < 0.002 and abs(float(np.mean(dense_flow[..., 0][poi])) - 0.4) > 0.002
+        # (The dense flow reads this shift 0.0005 px long since its warp interpolates with the
+        # B-spline, 0.003 px and more before; the affine fit's columns are within 0.0004 px.)
+        assert rmse < 0.002
 
 
 def _sliding_bar(paint_std: float, paint_px: float, noise_grey: float = 0.0) -> tuple:
@@ -121,3 +123,52 @@ def test_an_along_member_motion_beyond_its_uncertainty_moves() -> None:
     assert not deepflow_module._along_moves(np.full(50, 0.08), sigma)
     assert deepflow_module._along_moves(np.full(50, -0.2), sigma)
 
+
+
+G1 = Path(__file__).resolve().parents[2] / ".." / "shared" / "bench" / "gen" / "g1-textured-panel"
+
+
+@pytest.mark.skipif(not (G1 / "clip.mp4").exists(), reason="../shared/bench/gen not beside the project")
+def test_a_tracked_texture_fit_caught_off_the_motion_is_measured_in_full() -> None:
+    """The bench's photo-textured panel moves 1.0 px to the key and 1.4 px more in the next
+    frame. Tracked from the key's motion, the affine fit converged to -1.92 px where the panel
+    is at -2.41, with a robust residual (0.095 grey levels on the 41 % of pixels its weights
+    kept) within the key's band; over all its pixels the residual is 5.8 grey levels, the key's
+    0.93, and the frame is now measured in full (-2.50: the full measurement's 0.09 px error
+    on this fast frame is the same with either warp of the dense flow)."""
+    import cv2
+
+    from flow.io.video import VideoSource
+
+    source = VideoSource(G1 / "clip.mp4")
+    frames = [frame for _, (_, _, frame) in zip(range(3), source.frames(), strict=False)]
+    poi = cv2.imread(str(G1 / "mask.png"), cv2.IMREAD_GRAYSCALE) > 0
+    truth = np.loadtxt(G1 / "truth.csv", delimiter=",", skiprows=1)[:3, 2]
+    # As `refflow track` builds it for this lossy stream (flow.pipeline._for_source).
+    method = deepflow_module.DeepFlow(bias_correction=False, codec_crf=source.codec_crf or 23)
+    method.bind(frames[0], poi)
+    method.restart()
+    read = [float(np.mean(method.calc(frames[0], f)[..., 0][poi])) for f in frames]
+    assert method.counts["affine_readings"] == 3
+    np.testing.assert_allclose(read, truth - truth[0], atol=0.12)
+
+
+@pytest.mark.parametrize("across", [-4.0, -25.0])
+def test_the_background_a_member_moved_over_does_not_vote_on_whether_it_stands_still(across) -> None:
+    """A bar moved ``-across`` px to the left over a still wall: the reference's wall within
+    that distance of its left outline is hidden in the frame, and a dense flow gives it the
+    bar's motion there. The background check samples the wall 6 + half the motion beyond the
+    outlines; at 25 px the left side's samples (89 profiles, the right side 86) lie in the
+    hidden band and read as the background moving (the bench's bar swinging 35 px took the
+    dense flow 0.5-0.7 px short instead of its outline in a fifth of its frames); they no
+    longer vote."""
+    render, poi = _sliding_bar(1.0, 6.0)
+    reference = render(0.0, 0.0)
+    region = deepflow_module._Region.of(reference, poi, 1, member=True, texture=False)
+    flow = np.zeros(reference.shape + (2,), np.float32)
+    gx, _ = grid(*reference.shape)
+    flow[..., 0] = np.where((gx >= 57 + across) & (gx < 103), across, 0.0)  # bar and hidden wall
+    assert deepflow_module._background_static(flow, region) is True
+    # The check can fail: a wall that moves along with the bar (a whole moving view).
+    flow[..., 0] = across
+    assert deepflow_module._background_static(flow, region) is False

@@ -125,6 +125,7 @@ class RegionMotion:
     residual: float  # robust rms of the grey-level residual, in the reference's grey levels
     iterations: int
     inliers: float  # share of the pixels the robust weights keep (weight > 0)
+    rms: float = float("nan")  # plain rms of the grey-level residual over all the region's pixels
 
 
 def _warp_matrix(params: np.ndarray, scale: float) -> np.ndarray:
@@ -359,7 +360,8 @@ class RegionFit:
         if np.hypot(params[0] - start[0], params[3] - start[3]) > MAX_TRAVEL_PX:
             return dataclasses.replace(failed, iterations=iteration)
         return RegionMotion(params, converged, self._sigma(error, weights, hessian, jacobian),
-                            _robust_rms(error, weights), iteration, float(np.mean(weights > 0)))
+                            _robust_rms(error, weights), iteration, float(np.mean(weights > 0)),
+                            float(np.sqrt(np.mean(error ** 2))))
 
     def _sigma(self, error: np.ndarray, weights: np.ndarray, hessian: np.ndarray,
                jacobian: np.ndarray) -> tuple[float, float]:

@@ -12,8 +12,8 @@ constraints normalised by ``1 / (|grad|^2 + zeta^2)`` (Zimmer et al. 2011), a
 local smoothness weight ``alpha(x) = alpha * exp(-kappa * |grad I1(x)|)``
 (DeepFlow's edge-aware weight) and ``w'`` the matches with per-match weight
 ``phi``. It is minimised coarse to fine (pyramid factor ``eta``), warping the
-current frame once per level (bicubic, Keys a = -0.5) and differentiating the
-warped frame, with ``n_outer`` fixed-point iterations that freeze the robust
+current frame once per level (the cubic B-spline interpolant of the frame, not a
+cubic convolution: see :func:`_bspline_coefficients`) and differentiating the warped frame, with ``n_outer`` fixed-point iterations that freeze the robust
 weights and ``n_sor`` red-black successive over-relaxation sweeps on the 2x2
 per-pixel linear systems.
 
@@ -131,6 +131,7 @@ _SOR_CACHE_BYTES = 1 << 20
 # shifts them by up to 0.04 px (its weights' first moment at offset 0.3 is
 # 0.342), a bias that shows up as a sub-pixel flow error on low-texture scenes.
 _CUBIC_A = -0.5
+_WARP_BSPLINE = True
 
 
 class Workspace:
@@ -224,10 +225,96 @@ def _cubic(t):
     return w0, w1, w2, w3
 
 
-@njit(cache=True, error_model="numpy", nogil=True)
-def _warp(image, flow, out, inside):
-    """Bicubic ``image(x + flow(x))`` with a replicated border into ``out``.
+# The cubic B-spline's pole (Unser, Aldroubi and Eden 1991): interpolating with the B-spline
+# needs the image's spline coefficients, two recursive passes of this pole per axis.
+_BSPLINE_POLE = np.sqrt(3.0) - 2.0
 
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _bspline_line(line, work):
+    """The cubic B-spline coefficients of one line in place (mirror border).
+
+    The causal pass starts from the mirrored sum of the line's first samples (truncated where the
+    pole's power falls below 1e-7), the anticausal one from its closed form at the far end.
+    """
+    n = line.shape[0]
+    if n < 2:
+        return
+    z = _BSPLINE_POLE
+    for k in range(n):
+        work[k] = 6.0 * line[k]
+    horizon = min(n, 16)
+    acc = 0.0
+    zk = 1.0
+    for k in range(horizon):
+        acc += zk * work[k]
+        zk *= z
+    work[0] = acc
+    for k in range(1, n):
+        work[k] = work[k] + z * work[k - 1]
+    work[n - 1] = (z / (z * z - 1.0)) * (work[n - 1] + z * work[n - 2])
+    for k in range(n - 2, -1, -1):
+        work[k] = z * (work[k + 1] - work[k])
+    for k in range(n):
+        line[k] = work[k]
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _bspline_coefficients(image, out):
+    """The cubic B-spline coefficients of ``image`` into ``out`` (float64 passes, float32 out):
+    sampled at whole pixels the spline returns the image, between them it interpolates with a
+    far smaller sub-pixel bias than a cubic convolution (on a fine speckle shifted by 0.1 px,
+    Keys' cubic reads 10 % long, the B-spline 2 %)."""
+    H, W = image.shape
+    row = np.empty(W, np.float64)
+    wrow = np.empty(W, np.float64)
+    for y in range(H):
+        for x in range(W):
+            row[x] = image[y, x]
+        _bspline_line(row, wrow)
+        for x in range(W):
+            out[y, x] = row[x]
+    col = np.empty(H, np.float64)
+    wcol = np.empty(H, np.float64)
+    for x in range(W):
+        for y in range(H):
+            col[y] = out[y, x]
+        _bspline_line(col, wcol)
+        for y in range(H):
+            out[y, x] = col[y]
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _bspline_weights(t):
+    # The cubic B-spline's weights of the taps at -1, 0, 1, 2 for an offset t in [0, 1).
+    sixth = np.float32(1.0 / 6.0)
+    s = np.float32(1.0) - t
+    t2 = t * t
+    t3 = t2 * t
+    w0 = s * s * s * sixth
+    w1 = (np.float32(3.0) * t3 - np.float32(6.0) * t2 + np.float32(4.0)) * sixth
+    w2 = (np.float32(-3.0) * t3 + np.float32(3.0) * t2 + np.float32(3.0) * t + np.float32(1.0)) * sixth
+    w3 = t3 * sixth
+    return w0, w1, w2, w3
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _mirror(i, n):
+    # Whole-sample mirror of index i into [0, n) (the B-spline coefficients' border).
+    if i < 0:
+        i = -i
+    if i > n - 1:
+        i = 2 * (n - 1) - i
+    return min(max(i, 0), n - 1)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _warp(image, flow, out, inside, bspline):
+    """Bicubic ``image(x + flow(x))`` into ``out``.
+
+    ``bspline``: ``image`` holds the frame's cubic B-spline coefficients
+    (:func:`_bspline_coefficients`, mirrored border); otherwise it is the frame itself,
+    interpolated by Keys' cubic convolution with a replicated border.
     ``inside`` is 1 where the target lies in the frame, else 0 (the sample
     is then taken at the nearest point of the frame).
     """
@@ -252,15 +339,25 @@ def _warp(image, flow, out, inside):
             fy = np.floor(py)
             x0 = int(fx)
             y0 = int(fy)
-            wx0, wx1, wx2, wx3 = _cubic(px - fx)
-            wy0, wy1, wy2, wy3 = _cubic(py - fy)
-            xa = max(x0 - 1, 0)
-            xc = min(x0 + 1, W - 1)
-            xd = min(x0 + 2, W - 1)
-            ra = image[max(y0 - 1, 0)]
+            if bspline:
+                wx0, wx1, wx2, wx3 = _bspline_weights(px - fx)
+                wy0, wy1, wy2, wy3 = _bspline_weights(py - fy)
+                xa = _mirror(x0 - 1, W)
+                xc = _mirror(x0 + 1, W)
+                xd = _mirror(x0 + 2, W)
+                ra = image[_mirror(y0 - 1, H)]
+                rc = image[_mirror(y0 + 1, H)]
+                rd = image[_mirror(y0 + 2, H)]
+            else:
+                wx0, wx1, wx2, wx3 = _cubic(px - fx)
+                wy0, wy1, wy2, wy3 = _cubic(py - fy)
+                xa = max(x0 - 1, 0)
+                xc = min(x0 + 1, W - 1)
+                xd = min(x0 + 2, W - 1)
+                ra = image[max(y0 - 1, 0)]
+                rc = image[min(y0 + 1, H - 1)]
+                rd = image[min(y0 + 2, H - 1)]
             rb = image[y0]
-            rc = image[min(y0 + 1, H - 1)]
-            rd = image[min(y0 + 2, H - 1)]
             out[y, x] = (
                 wy0 * (wx0 * ra[xa] + wx1 * ra[x0] + wx2 * ra[xc] + wx3 * ra[xd])
                 + wy1 * (wx0 * rb[xa] + wx1 * rb[x0] + wx2 * rb[xc] + wx3 * rb[xd])
@@ -410,6 +507,7 @@ def _prepare_level(
     scratch,
     data,
     level,
+    bspline,
 ):
     """Pack one level's data terms into ``data`` and its constants into ``level``.
 
@@ -428,7 +526,7 @@ def _prepare_level(
     s1 = scratch[0:6]
     s2 = scratch[6:12]
     _derivatives(image1, s1)
-    _warp(image2, flow, s2[0], scratch[12])
+    _warp(image2, flow, s2[0], scratch[12], bspline)
     _derivatives(s2[0], s2)
     _pack_data(s1, s2, scratch[12], zeta2, data)
     _pack_level(flow, match, match_scale, half_weight, alpha, level)
@@ -855,6 +953,16 @@ def _normalised_pair(reference: np.ndarray, current: np.ndarray,
     return im1, im2
 
 
+def _warp_source(image: np.ndarray, ws: Workspace) -> np.ndarray:
+    """What :func:`_warp` samples for ``image``: its B-spline coefficients (in the workspace)
+    or the image itself."""
+    if not _WARP_BSPLINE:
+        return image
+    coef = ws.array("bspline", image.shape)
+    _bspline_coefficients(image, coef)
+    return coef
+
+
 def _smoothness_weight(image: np.ndarray, params: VariationalParams, scale: float, ws: Workspace) -> np.ndarray:
     """The local smoothness weight ``alpha exp(-kappa |grad|)`` of one pyramid level (in the
     workspace's ``alpha`` array), from the gradient of ``image`` blurred by ``edge_sigma``."""
@@ -944,7 +1052,7 @@ def refine(
         level = ws.array("level", (h + 2, _N_LEVEL) + packed)
         _prepare_level(
             i1,
-            pyr2.level(h, w),
+            _warp_source(pyr2.level(h, w), ws),
             flow,
             flow_scale,
             match,
@@ -955,6 +1063,7 @@ def refine(
             ws.array("planes", (13, h, w)),
             data,
             level,
+            _WARP_BSPLINE,
         )
         du, dv = _solve(ws, params, level, data, h, w, checkpoint)
         flow = _add_increment(flow, du, dv)
