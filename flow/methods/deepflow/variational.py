@@ -234,8 +234,8 @@ _BSPLINE_POLE = np.sqrt(3.0) - 2.0
 def _bspline_line(line, work):
     """The cubic B-spline coefficients of one line in place (mirror border).
 
-    The causal pass starts from the mirrored sum of the line's first samples (truncated where the
-    pole's power falls below 1e-7), the anticausal one from its closed form at the far end.
+    The causal pass starts from the mirrored sum of the line's first 16 samples (the pole's 16th
+    power is 7e-10), the anticausal one from its closed form at the far end.
     """
     n = line.shape[0]
     if n < 2:
@@ -263,25 +263,25 @@ def _bspline_line(line, work):
 def _bspline_coefficients(image, out):
     """The cubic B-spline coefficients of ``image`` into ``out`` (float64 passes, float32 out):
     sampled at whole pixels the spline returns the image, between them it interpolates with a
-    far smaller sub-pixel bias than a cubic convolution (on a fine speckle shifted by 0.1 px,
-    Keys' cubic reads 10 % long, the B-spline 2 %)."""
-    H, W = image.shape
-    row = np.empty(W, np.float64)
-    wrow = np.empty(W, np.float64)
+    far smaller sub-pixel bias than a cubic convolution (DIC Challenge Sample 14's speckle
+    shifted by 0.1 px reads 9 % long through the variational solve with Keys' cubic, 0.8 % with
+    the B-spline)."""
+    _bspline_rows(image, out)
+    _bspline_rows(out.T, out.T)  # the columns: the transpose's rows, in place
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _bspline_rows(src, dst):
+    # Each row of src through _bspline_line into the same row of dst (float64 passes).
+    H, W = src.shape
+    line = np.empty(W, np.float64)
+    work = np.empty(W, np.float64)
     for y in range(H):
         for x in range(W):
-            row[x] = image[y, x]
-        _bspline_line(row, wrow)
+            line[x] = src[y, x]
+        _bspline_line(line, work)
         for x in range(W):
-            out[y, x] = row[x]
-    col = np.empty(H, np.float64)
-    wcol = np.empty(H, np.float64)
-    for x in range(W):
-        for y in range(H):
-            col[y] = out[y, x]
-        _bspline_line(col, wcol)
-        for y in range(H):
-            out[y, x] = col[y]
+            dst[y, x] = line[x]
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
