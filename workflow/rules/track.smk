@@ -90,6 +90,9 @@ rule track_regions:
     output:
         csv=f"{RESULTS}/{{scenario}}/track/regions.csv",
         sidecar=f"{RESULTS}/{{scenario}}/track/regions.json",
+    # One run of the default over the whole clip (the modal scenario's: 18 CPU minutes), its
+    # chains spread over the cores; the numbers do not depend on --jobs.
+    threads: 2
     params:
         code=CODE["flow"],
         method=regions_method,
