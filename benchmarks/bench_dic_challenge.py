@@ -204,7 +204,9 @@ def table(results: dict, methods: list[str]) -> str:
                 cells.append(s14["error"] if s14 and level == "L1" else "-")
                 continue
             r = s14[level]
-            cells.append(f"{r['rmse_px']:.4f} / {r['gain']:.3f} / {r['shortest_period_px']:.0f}")
+            period = r["shortest_period_px"]
+            period = "none" if not np.isfinite(period) else f"{period:.0f}"  # never within 10 %
+            cells.append(f"{r['rmse_px']:.4f} / {r['gain']:.3f} / {period}")
         s3_cell = f"{s3['bias_rms_px']:.4f} / {s3['bias_max_px']:.4f}" if s3 and "error" not in s3 else "-"
         wall = f"{s14['wall_s']:.0f}" if s14 and "wall_s" in s14 else "-"
         lines.append(f"| {method} | {' | '.join(cells)} | {s3_cell} | {wall} |")
@@ -216,7 +218,12 @@ def table(results: dict, methods: list[str]) -> str:
             cells = []
             for name in STARS:
                 r = stars.get(name, {}).get(method)
-                cells.append("-" if not r or "error" in r else f"{r['resolution_px']:.0f} / {r['noise_px']:.4f}")
+                if not r or "error" in r:
+                    cells.append("-")
+                    continue
+                resolution = r["resolution_px"]
+                resolution = "none" if not np.isfinite(resolution) else f"{resolution:.0f}"  # never within 10 %
+                cells.append(f"{resolution} / {r['noise_px']:.4f}")
             lines.append(f"| {method} | {' | '.join(cells)} |")
     return "\n".join(lines)
 
