@@ -408,8 +408,8 @@ def _background_static(flow: np.ndarray, region: _Region) -> bool | None:
     outside = flow[out_y.astype(np.intp), out_x.astype(np.intp)].astype(np.float64)
     # Where the member advanced over the background by about the sample's distance or more, the
     # reference's background there is hidden in the frame and its flow is the member's or none
-    # (a bar swung 27 px: its leading side read as background moving, and the dense flow, 0.5-0.7 px
-    # short, was taken instead of the outline): such profiles do not vote.
+    # (a bar swinging 35 px, at 25-31 px: its leading side read as background moving, and the
+    # dense flow, 0.5-0.7 px short, was taken instead of the outline): such profiles do not vote.
     advance = member.side * np.where(member.vertical, at_profiles[:, 1], at_profiles[:, 0])
     outside = outside[np.all(np.isfinite(outside), axis=1) & ~(advance + HIDDEN_MARGIN_PX >= distance)]
     if outside.shape[0] < 3:

@@ -234,8 +234,10 @@ _BSPLINE_POLE = np.sqrt(3.0) - 2.0
 def _bspline_line(line, work):
     """The cubic B-spline coefficients of one line in place (mirror border).
 
-    The causal pass starts from the mirrored sum of the line's first 16 samples (the pole's 16th
-    power is 7e-10), the anticausal one from its closed form at the far end.
+    The causal pass starts from the mirrored line's sum weighted by the pole's powers: on a
+    long line its first 16 samples (the pole's 16th power is 7e-10), on a shorter one the sum
+    over the whole mirrored period in closed form; the anticausal pass from its closed form at
+    the far end.
     """
     n = line.shape[0]
     if n < 2:
@@ -243,13 +245,25 @@ def _bspline_line(line, work):
     z = _BSPLINE_POLE
     for k in range(n):
         work[k] = 6.0 * line[k]
-    horizon = min(n, 16)
-    acc = 0.0
-    zk = 1.0
-    for k in range(horizon):
-        acc += zk * work[k]
-        zk *= z
-    work[0] = acc
+    if n > 16:
+        acc = 0.0
+        zk = 1.0
+        for k in range(16):
+            acc += zk * work[k]
+            zk *= z
+        work[0] = acc
+    else:
+        # The mirrored line repeats every 2 (n - 1) samples: sample k comes back at
+        # 2 (n - 1) - k, and the geometric series over the periods sums in closed form.
+        zk = z
+        back = z ** (n - 1)
+        acc = work[0] + back * work[n - 1]
+        back = back * back / z
+        for k in range(1, n - 1):
+            acc += (zk + back) * work[k]
+            zk *= z
+            back /= z
+        work[0] = acc / (1.0 - zk * zk)
     for k in range(1, n):
         work[k] = work[k] + z * work[k - 1]
     work[n - 1] = (z / (z * z - 1.0)) * (work[n - 1] + z * work[n - 2])
