@@ -178,22 +178,31 @@ TEXTURE_ENOUGH_PX = 0.012
 # bars 0.23-0.67; textured panel, whole view, bolted plate, slab, girder 1.5-7.7; the shaded
 # column 4.1 across and 0.2 along.
 MIN_TEXTURE_GRADIENT = 1.0
-# The outline model assumes a background that stands still behind the member. In a full
-# measurement the dense flow is read on the member side of every outline and beyond it, at
-# BACKGROUND_OFFSET_PX plus BACKGROUND_DRAG times the member's motion (the dense flow's
-# smoothing drags a fast member's motion into the background in proportion): where the member
-# moves by more than STATIC_MIN_MOTION_PX, the background's median motion must stay within
-# STATIC_RATIO of the member's (plus STATIC_SLACK_PX), or the outline is not a member's edge
-# against a still background (a texture seam, a whole moving view) or not one the dense flow
-# can tell from it (a round column's dark side against a wall: the outline read 0.13 px RMS
-# there, the dense flow 0.04).
+# The outline model needs an outline between two layers: the member and a background that
+# either stands still behind it or moves with it (a plate fixed to the member, a whole view
+# moving), not one that the dense flow drags part of the way. In a full measurement the dense
+# flow is read on the member side of every outline and beyond it, at BACKGROUND_OFFSET_PX plus
+# BACKGROUND_DRAG times the member's motion (the dense flow's smoothing drags a fast member's
+# motion into the background in proportion). Where the member moves by more than
+# STATIC_MIN_MOTION_PX, on each side of the member the background's median motion must stay
+# within STATIC_RATIO of the member's motion (plus STATIC_SLACK_PX) of zero, or within
+# WITH_RATIO of it (plus the slack) of the member's median motion; else the outline is not an
+# edge the dense flow can tell (a round column's dark side against a wall, dragged 0.3-0.6 of
+# the way: the outline read 0.13 px RMS there, the dense flow 0.04). WITH_RATIO is the
+# stricter: for a motion of a pixel or less the slack would let such a drag, 0.6-0.75 of the
+# way there, pass as moving with. A background moving with the member is the workbench's own
+# scene: the logo plate behind the beam's edge (and the plain wall beside it, which the
+# smoothing drags 0.9 of the way) moves with the beam; refusing its outline left an 8 px
+# strip's imprecise texture fit, 0.080 mm RMS where the outline reads 0.013 (DIS 0.016).
 BACKGROUND_OFFSET_PX = 6
 BACKGROUND_DRAG = 0.5
 STATIC_MIN_MOTION_PX = 0.5
 STATIC_RATIO = 0.3
 STATIC_SLACK_PX = 0.1
+WITH_RATIO = 0.15
 # A background sample within this of the member's advanced outline counts as hidden (blur).
 HIDDEN_MARGIN_PX = 2.0
+HIDDEN_SHARE = 0.25
 
 # A strong texture's region is read by the dense flow where the dense flow shows it deforming
 # beyond an affine field (see _deforms): its departure from its own affine fit, smoothed over
@@ -227,9 +236,10 @@ REASONS = {
     "texture_no_outline": "the strong texture however imprecise; no outline against a still background",
     "dense_only": "the dense flow; neither a strong texture nor an outline against a still background",
     "dense_deforms": "the dense flow; the strong texture shows the region deforming beyond an affine field",
-    "outline_background_unseen": "an outline refused: a strong texture, and the background never seen "
-                                 "standing still while the member moved",
-    "outline_background_moves": "an outline refused: the background beyond it moves with the member",
+    "outline_background_unseen": "an outline refused: a strong texture more precise than it, and the "
+                                 "background never seen still or moving with the member while it moved",
+    "outline_background_moves": "an outline refused: the background beyond it moves part of the way "
+                                "with the member (neither still nor with it)",
     "outline_imprecise": "an outline refused: its own uncertainty exceeds OUTLINE_MAX_SIGMA_PX on both axes",
 }
 # The reasons that count a refusal, not the choice a full measurement made.
@@ -280,7 +290,7 @@ class _Region:
     affine_before: np.ndarray | None = None  # and of the frame before it
     key_residual: float = float("nan")  # the texture fit's residual at the chain's key
     key_rms: float = float("nan")  # and its plain rms over all the region's pixels
-    static_known: bool = False  # the chain's key saw the background stand still while the member moved
+    static_known: bool = False  # the chain's key saw the background still or moving with the member
     reference: np.ndarray | None = None  # kept for the codec floor (None: the frames are lossless)
     codec_crf: float | None = None  # the lossy stream's quality (see flow.methods.deepflow.codecfloor)
     codec_floor_px: tuple[float, float] | None = None  # measured on the first texture reading
@@ -390,31 +400,47 @@ def _deforms(region: _Region, dense_u: np.ndarray, dense_v: np.ndarray, *, lossl
 
 
 def _background_static(flow: np.ndarray, region: _Region) -> bool | None:
-    """Whether the dense ``flow`` shows the background beyond the region's outline standing
-    still while the member moves (None where the member's motion is too small to tell)."""
+    """Whether the dense ``flow`` shows the background beyond the region's outline, on each
+    side of the member, either standing still or moving with the member while the member
+    moves (None where the member's motion is too small to tell, or no side has profiles
+    enough to vote); False where a side's background moves part of the way."""
     member = region.member
     height, width = flow.shape[:2]
     at_profiles = flow[region.prior_rows, region.prior_cols].astype(np.float64)
-    inside = at_profiles[np.all(np.isfinite(at_profiles), axis=1)]
-    if inside.shape[0] < 3:
+    finite = np.all(np.isfinite(at_profiles), axis=1)
+    if finite.sum() < 3:
         return None
-    moved = float(np.hypot(*np.median(inside, axis=0)))
+    motion = np.median(at_profiles[finite], axis=0)
+    moved = float(np.hypot(*motion))
     if moved < STATIC_MIN_MOTION_PX:
         return None
     distance = BACKGROUND_OFFSET_PX + BACKGROUND_DRAG * moved
     offset = distance * member.side
-    out_x = np.clip(np.rint(np.where(member.vertical, member.px, member.px + offset)), 0, width - 1)
-    out_y = np.clip(np.rint(np.where(member.vertical, member.py + offset, member.py)), 0, height - 1)
-    outside = flow[out_y.astype(np.intp), out_x.astype(np.intp)].astype(np.float64)
+    out_x = np.rint(np.where(member.vertical, member.px, member.px + offset))
+    out_y = np.rint(np.where(member.vertical, member.py + offset, member.py))
+    inside_frame = (out_x >= 0) & (out_x < width) & (out_y >= 0) & (out_y < height)
+    outside = flow[np.clip(out_y, 0, height - 1).astype(np.intp),
+                   np.clip(out_x, 0, width - 1).astype(np.intp)].astype(np.float64)
     # Where the member advanced over the background by about the sample's distance or more, the
     # reference's background there is hidden in the frame and its flow is the member's or none
     # (a bar swinging 35 px, at 25-31 px: its leading side read as background moving, and the
-    # dense flow, 0.5-0.7 px short, was taken instead of the outline): such profiles do not vote.
+    # dense flow, 0.5-0.7 px short, was taken instead of the outline): such profiles do not vote,
+    # and a side with more than HIDDEN_SHARE of them does not (its other profiles are those the
+    # dense flow read short: the workbench's beam moving 8-9 px, 0.6-0.8 of its motion).
     advance = member.side * np.where(member.vertical, at_profiles[:, 1], at_profiles[:, 0])
-    outside = outside[np.all(np.isfinite(outside), axis=1) & ~(advance + HIDDEN_MARGIN_PX >= distance)]
-    if outside.shape[0] < 3:
-        return None
-    return float(np.hypot(*np.median(outside, axis=0))) <= STATIC_RATIO * moved + STATIC_SLACK_PX
+    hidden = finite & (advance + HIDDEN_MARGIN_PX >= distance)
+    votes = finite & ~hidden & inside_frame & np.all(np.isfinite(outside), axis=1)
+    tolerance = STATIC_RATIO * moved + STATIC_SLACK_PX
+    verdicts = []
+    for side in (-1, 1):
+        on_side = member.side == side
+        voting = votes & on_side
+        if voting.sum() < 3 or hidden[on_side].sum() > HIDDEN_SHARE * finite[on_side].sum():
+            continue
+        still = float(np.hypot(*np.median(outside[voting], axis=0)))
+        along = float(np.hypot(*(np.median(outside[voting], axis=0) - motion)))
+        verdicts.append(still <= tolerance or along <= WITH_RATIO * moved + STATIC_SLACK_PX)
+    return all(verdicts) if verdicts else None
 
 
 def _poi_motion(flow: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> float:
@@ -446,10 +472,11 @@ class DeepFlow(DenseMethod):
 
     Each region takes (:func:`_choose`) its texture where the texture is strong
     (:data:`MIN_TEXTURE_GRADIENT`) and fixes the motion (:data:`TEXTURE_ENOUGH_PX`); else
-    its outline, where the dense flow shows the background beyond it standing still while
-    the member moves (:func:`_background_static`; seen so, not only not seen moving, where the
-    texture is strong) and the outline matches the POIs no worse than the dense flow; else a
-    strong texture however imprecise; else the dense flow. A strong texture's region whose
+    its outline, where the dense flow shows the background beyond it standing still or moving
+    with the member (not dragged part of the way) while the member moves
+    (:func:`_background_static`; seen so, not only not seen dragged, where the texture is
+    strong and more precise than the outline) and the outline matches the POIs no worse than
+    the dense flow; else a strong texture however imprecise; else the dense flow. A strong texture's region whose
     dense flow deforms beyond any affine field (:func:`_deforms`: a sine, a wave) takes the
     dense flow whatever the models say.
     Through a video the driver hands the frames over in chains (see ``warm``): a chain's
@@ -737,9 +764,13 @@ class DeepFlow(DenseMethod):
                                                           dense_u, dense_v) + MATCH_SLACK:
                     outline = (u, v, sigma)
                     region.key_mismatch = edges
-        if outline is not None and strong and static is not True:
+        if (outline is not None and strong and static is not True
+                and not self._outline_sharper(region, outline, affine)):
             # A strong texture lets the dense flow see the region's own motion: an outline is
-            # not taken over it on the word of a background never seen standing still.
+            # not taken over it on the word of a background never seen standing still, unless
+            # it is the more precise of the two across the member (the workbench's beam before
+            # its release: an 8 px strip's texture fit, 0.22 px sigma with the codec's error,
+            # read 0.05 px off where the outline, 0.002-0.03 px, read the rest).
             self._count(None, "outline_background_unseen")
             outline = None
         chosen, model, reason = _choose(affine, outline, strong, deforms)
@@ -750,6 +781,15 @@ class DeepFlow(DenseMethod):
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
             region.key_rms = texture.rms
         return chosen
+
+    def _outline_sharper(self, region: _Region, outline: tuple, affine: tuple | None) -> bool:
+        """Whether an outline reading is more precise than the texture's (``affine``; None: no
+        texture reading) on the axis the outline fixes best, the texture's sigma with the
+        codec's error (see :meth:`_Region.reported_sigma`)."""
+        if affine is None:
+            return False
+        axis = int(np.argmin(outline[2]))
+        return outline[2][axis] < self._reported_sigma(region, affine[2])[axis]
 
     def _track(self, reference: np.ndarray, current: np.ndarray,
                region: _Region) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
