@@ -437,9 +437,9 @@ def _background_static(flow: np.ndarray, region: _Region) -> bool | None:
         voting = votes & on_side
         if voting.sum() < 3 or hidden[on_side].sum() > HIDDEN_SHARE * finite[on_side].sum():
             continue
-        still = float(np.hypot(*np.median(outside[voting], axis=0)))
-        along = float(np.hypot(*(np.median(outside[voting], axis=0) - motion)))
-        verdicts.append(still <= tolerance or along <= WITH_RATIO * moved + STATIC_SLACK_PX)
+        beyond = np.median(outside[voting], axis=0)
+        verdicts.append(float(np.hypot(*beyond)) <= tolerance
+                        or float(np.hypot(*(beyond - motion))) <= WITH_RATIO * moved + STATIC_SLACK_PX)
     return all(verdicts) if verdicts else None
 
 
@@ -475,10 +475,10 @@ class DeepFlow(DenseMethod):
     its outline, where the dense flow shows the background beyond it standing still or moving
     with the member (not dragged part of the way) while the member moves
     (:func:`_background_static`; seen so, not only not seen dragged, where the texture is
-    strong and more precise than the outline) and the outline matches the POIs no worse than
-    the dense flow; else a strong texture however imprecise; else the dense flow. A strong texture's region whose
-    dense flow deforms beyond any affine field (:func:`_deforms`: a sine, a wave) takes the
-    dense flow whatever the models say.
+    strong and the outline no more precise than it) and the outline matches the POIs no worse
+    than the dense flow; else a strong texture however imprecise; else the dense flow. A
+    strong texture's region whose dense flow deforms beyond any affine field (:func:`_deforms`:
+    a sine, a wave) takes the dense flow whatever the models say.
     Through a video the driver hands the frames over in chains (see ``warm``): a chain's
     first frame is measured so, and the rest track each region with the model its key chose,
     from the previous frames' motion, while their photometric mismatch stays in the chain's
@@ -709,14 +709,18 @@ class DeepFlow(DenseMethod):
             self._motion_px = _poi_motion(flow, self._poi_rows, self._poi_cols)
         return flow
 
-    def _reported_sigma(self, region: _Region, sigma: tuple[float, float]) -> tuple[float, float]:
-        """A region's reported sigma (see :meth:`_Region.reported_sigma`); the codec floor it
-        measured and the time it took go to the counts (the sidecar's timings)."""
+    def _reported_sigma(self, region: _Region, sigma: tuple[float, float], *,
+                        reading: bool = True) -> tuple[float, float]:
+        """A region's reported sigma (see :meth:`_Region.reported_sigma`); the time measuring
+        its codec floor took goes to the counts (the sidecar's timings), and the floor itself
+        where the sigma is that of a texture ``reading`` reported (not only compared, see
+        :meth:`_outline_sharper`)."""
         measured = region.codec_floor_px
         started = time.perf_counter()
         reported = region.reported_sigma(sigma)
         if measured is None and region.codec_floor_px is not None:
             self.counts["codec_floor_s"] += time.perf_counter() - started
+        if reading and isinstance(sigma, _TextureSigma) and region.codec_floor_px is not None:
             for axis, floor in zip("xy", region.codec_floor_px, strict=True):
                 self.counts[f"codec_floor_{axis}_px"] = max(self.counts[f"codec_floor_{axis}_px"], floor)
         return reported
@@ -789,7 +793,7 @@ class DeepFlow(DenseMethod):
         if affine is None:
             return False
         axis = int(np.argmin(outline[2]))
-        return outline[2][axis] < self._reported_sigma(region, affine[2])[axis]
+        return outline[2][axis] < self._reported_sigma(region, affine[2], reading=False)[axis]
 
     def _track(self, reference: np.ndarray, current: np.ndarray,
                region: _Region) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
