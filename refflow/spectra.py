@@ -4,7 +4,9 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import signal
+
+# scipy.signal (about a second to import) is imported where it is used: `refflow track` imports
+# this module through flow.figures and never picks a peak.
 
 
 def pick_peaks(freq: np.ndarray, spectrum: np.ndarray, *, count: int | None = None,
@@ -40,6 +42,8 @@ def pick_peaks(freq: np.ndarray, spectrum: np.ndarray, *, count: int | None = No
         raise ValueError(f"freq {freq.shape} and spectrum {spectrum.shape} must be 1-D of one length")
     if freq.size < 3:
         return []
+    from scipy import signal
+
     log_spectrum = np.log(np.maximum(spectrum, np.max(spectrum) * 1e-30 + 1e-300))
     idx, _ = signal.find_peaks(spectrum, prominence=rel_prominence * float(np.max(spectrum)))
     peaks = []

@@ -207,6 +207,16 @@ def test_registry_and_methods_import_in_any_order(order):
     assert run.stdout.split() == [",".join(registry.available())]
 
 
+def test_the_command_line_starts_without_the_spectral_libraries():
+    # Every `refflow` command imports flow.cli and its subcommands' parsers; scipy.signal (with
+    # scipy.stats under it, a second or two on a 2-core machine) is imported only by the code
+    # that picks peaks or identifies modes, when it runs.
+    run = run_fresh("import sys\nimport flow.cli\n"
+                    "print(sorted(m for m in sys.modules if m.startswith(('scipy.signal', 'scipy.stats'))))")
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["[]"], run.stdout
+
+
 def test_deep_merge_overrides_nested_and_replaces_lists():
     base = {"beam": {"length_mm": 1000, "width_mm": 100}, "excitation": [{"type": "pluck"}]}
     merged = deep_merge(base, {"beam": {"length_mm": 500}, "excitation": [{"type": "ambient"}]})
