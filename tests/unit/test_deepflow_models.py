@@ -174,6 +174,45 @@ def test_the_background_a_member_moved_over_does_not_vote_on_whether_it_stands_s
     assert deepflow_module._background_static(flow, region) is False
 
 
+def test_a_background_the_dense_flow_drags_is_judged_by_its_pixels() -> None:
+    """A bar moved 3 px over a wall, and a dense flow that says the wall beyond both outlines
+    moved 0.8 of the way (the workbench's beam with a background mask: the smoothing's
+    interpolation over a plain band, and a logo plate moving with the beam). The flow alone
+    refuses the outline; where the pixels clearly show the wall standing still or moving with
+    the bar it is kept; moving part of the way, or a plain wall that shows nothing, refuses it."""
+    height, width, x0, x1 = 96, 160, 60, 100
+    gx, _ = grid(height, width)
+    rng = np.random.default_rng(3)
+
+    def frames(wall: np.ndarray, wall_shift: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        bar = 150 + 1.0 * smooth_noise(height, width, 6.0, np.random.default_rng(11))
+
+        def render(across: float, behind: float) -> np.ndarray:
+            cover = np.clip(np.minimum(gx + 0.5 - (x0 + across), (x1 + across) - (gx - 0.5)), 0, 1)
+            moved = fourier_shift(wall, behind, 0.0) * (1 - cover) + fourier_shift(bar, across, 0.0) * cover
+            return to_u8(moved + rng.normal(0, 1.0, (height, width)))
+
+        poi = np.zeros((height, width), bool)
+        poi[20:height - 20, x0 + 6:x1 - 6] = True
+        return render(0.0, 0.0), render(3.0, wall_shift), poi
+
+    def judged(wall: np.ndarray, wall_shift: float, *, with_frames: bool = True) -> bool | None:
+        reference, current, poi = frames(wall, wall_shift)
+        region = deepflow_module._Region.of(reference, poi, 1, member=True, texture=False)
+        flow = np.zeros(reference.shape + (2,), np.float32)
+        flow[..., 0] = np.where((gx >= x0) & (gx < x1 + 3), 3.0, 2.4)  # the wall dragged 0.8 of the way
+        if not with_frames:
+            return deepflow_module._background_static(flow, region)
+        return deepflow_module._background_static(flow, region, reference, current)
+
+    wall = textured(height, width, seed=7).astype(np.float64)
+    assert judged(wall, 0.0, with_frames=False) is False  # the flow alone
+    assert judged(wall, 0.0) is True  # a still wall
+    assert judged(wall, 3.0) is True  # a plate moving with the bar
+    assert judged(wall, 1.5) is False  # moving half the way
+    assert judged(np.full((height, width), 90.0), 0.0) is False  # a plain wall shows nothing
+
+
 def test_a_background_moving_with_the_member_keeps_its_outline() -> None:
     """The workbench's scene: a plate fixed to the beam behind its edge moves with it (and the
     smoothing drags the plain wall on the other side 0.9 of the way). An outline between two
