@@ -110,3 +110,27 @@ def test_outline_moved_onto_background_the_reference_shows_is_located_by_its_are
     shadowed = leading & (edges.line < 40)
     assert shadowed.any() and not np.isfinite(known.edge[shadowed]).any()
     assert np.isfinite(known.edge[leading & (edges.line >= 48)]).any()
+
+
+def test_a_known_background_is_taken_where_the_camera_moved_it():
+    # The camera moved 2 px along the member (a mount creeping) while the member moved 6 px
+    # across: every pixel of the frame, wall and member, 2 rows down. The member's outline is
+    # where it was across the rows; the wall beside it is the reference's from 2 rows up. Told
+    # the camera's motion, the outline's area is exact; not told, the wall it takes is wrong.
+    motion = np.linspace(0.0, 7.0, 8)
+    clip = make_clip(seed=5, frames=8, noise=0.0, blur_px=0.8, motion_px=motion, width=240,
+                     bar_width=32)
+    right = (240 - 32) // 2 + 32 - 0.5
+    edges = MemberEdges.from_reference(clip.frames[0], clip.mask)
+    leading = ~edges.vertical & (edges.side > 0) & (edges.line >= 4)
+    frame = np.roll(clip.frames[6].astype(np.float32), 2, axis=0)
+    guess = edges.ref.edge + edges._normal(np.full(edges.n_profiles, motion[6]), 0.0)
+    told = edges._known(frame, guess, None, np.array([0.0, 2.0]))
+    found = np.isfinite(told.edge) & leading
+    assert found.sum() > 0.2 * leading.sum()
+    assert abs(np.median(told.edge[found]) - (right + motion[6])) < 0.04
+    blind = edges._known(frame, guess, None)
+    kept = np.isfinite(blind.edge) & leading
+    error = np.abs(blind.edge[kept] - (right + motion[6]))
+    print(f"told: {found.sum()} profiles, blind: {kept.sum()}, blind median error {np.median(error) if kept.any() else np.nan:.3f} px")
+    assert kept.sum() < 0.5 * found.sum() or np.median(error) > 0.1

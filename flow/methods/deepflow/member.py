@@ -78,6 +78,7 @@ import cv2
 import numpy as np
 from numba import njit
 
+from flow.measure.photometric import sample
 from flow.measure.robust import MAD_TO_SIGMA
 from flow.methods.deepflow.checks import check_shape
 
@@ -564,6 +565,16 @@ class MemberEdges:
         cols = np.where(self.vertical[:, None], line, along)
         return image[rows, cols].astype(np.float64), inside
 
+    def _moved_strips(self, image: np.ndarray, centre: np.ndarray, motion: np.ndarray) -> np.ndarray:
+        """:meth:`_strips` of ``image`` as it shows after moving by ``motion`` (u, v) px: each
+        pixel sampled (bilinear) where that motion brought it from; NaN from outside it."""
+        offsets = np.arange(-HALF, HALF + 1)
+        along = centre[:, None] + self.side[:, None] * offsets[None, :]
+        line = np.broadcast_to(self.line[:, None], along.shape)
+        rows = np.where(self.vertical[:, None], along, line).astype(np.float64)
+        cols = np.where(self.vertical[:, None], line, along).astype(np.float64)
+        return sample(image, cols - motion[0], rows - motion[1]).astype(np.float64)
+
     def _centre(self, guess: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(finite, guess with NaN replaced, strip centre pixel)`` for outline guesses."""
         finite = np.isfinite(guess)
@@ -637,7 +648,8 @@ class MemberEdges:
         edge = np.where(ok, ref_edge + d, np.nan)
         return _Outline(edge, var, self.ref.contrast.copy(), misfit)
 
-    def _known(self, image: np.ndarray, guess: np.ndarray, gain: float | None) -> _Outline:
+    def _known(self, image: np.ndarray, guess: np.ndarray, gain: float | None,
+               camera: np.ndarray | None = None) -> _Outline:
         """Outline positions, where the member has moved onto background the reference shows,
         from the outline's area over the background copied from the reference.
 
@@ -649,14 +661,22 @@ class MemberEdges:
         the window's start: exact whatever the outline's spread (lens, motion blur, a codec's
         smoothing) within the window, where one pixel's coverage locks to the pixel grid.
         Elsewhere NaN. The background just beyond the window must match the reference's (a
-        robust test over all profiles): what moved in front of it is not background.
+        robust test over all profiles): what moved in front of it is not background. Where the
+        camera moved (``camera``: its image motion (u, v) px at the member, from a background
+        the user marked), the reference's background is taken where the camera's motion brought
+        it from (the wall 2 px off along the member: a median outline 0.9 px off otherwise).
         """
         n = len(self.line)
         scale = 1.0 if gain is None else gain
         finite, _, centre = self._centre(guess)
         finite &= np.isfinite(self.ref.edge)
         values, inside = self._strips(image, centre)
-        ref_values, _ = self._strips(self._ref_image, centre)
+        if camera is None:
+            ref_values, _ = self._strips(self._ref_image, centre)
+        else:
+            ref_values = self._moved_strips(self._ref_image, centre, camera)
+            inside &= np.all(np.isfinite(ref_values), axis=1)
+            ref_values = np.nan_to_num(ref_values)
         ref_values = ref_values * scale
         ref_e = HALF + self.side * (np.where(finite, self.ref.edge, 0.0) - centre)
         first = HALF - KNOWN_HALF
@@ -710,12 +730,14 @@ class MemberEdges:
 
     # -- per frame ---------------------------------------------------------------------------------
 
-    def fit(self, current: np.ndarray, prior_uv: np.ndarray, *, gain: float | None = None) -> MemberFit:
+    def fit(self, current: np.ndarray, prior_uv: np.ndarray, *, gain: float | None = None,
+            camera: np.ndarray | None = None) -> MemberFit:
         """Fit the member's motion in ``current`` (same shape as the reference).
 
         ``prior_uv``: ``(n_profiles, 2)`` dense-flow displacement at each profile's outline,
         the starting guess and the weak prior. ``gain``: the frame's brightness relative to
-        the reference (lighting changes), for the background predictor's mean.
+        the reference (lighting changes), for the background predictor's mean. ``camera``: the
+        camera's own image motion (u, v) px at the member where known (see :meth:`_known`).
         Raises ``ValueError`` naming the shapes if ``current`` is not the reference's shape or
         ``prior_uv`` not ``(n_profiles, 2)`` (the numba kernels do not bounds-check).
         """
@@ -748,7 +770,7 @@ class MemberEdges:
                 found = self._fine(cur, guess, gain, blur)
                 if blur == 0.0 and round_ > 0:
                     # Outlines that moved onto background the reference shows: from their area.
-                    known = self._known(cur, guess, gain)
+                    known = self._known(cur, guess, gain, camera)
                     use = np.isfinite(known.edge)
                     for name in ("edge", "var", "contrast", "misfit"):
                         getattr(found, name)[use] = getattr(known, name)[use]

@@ -766,35 +766,42 @@ class DeepFlow(DenseMethod):
         else:
             self.counts["full_frames"] += 1
             flow = self._dense_reaching(reference, current)
+        # The camera's motion first (from the background points, where given): the outline
+        # model takes the reference's background where the camera brought it from.
+        camera = None
+        if self._background is not None and current.shape == self._bound_shape:
+            camera = self._read_background(current, flow)
         for region, warm in zip(regions, tracked, strict=True):
             self.check_stop()
-            found = warm if warm is not None else self._full(reference, current, flow, region)
+            at = None if camera is None else np.array(
+                [c[0] for c in self._background.field(camera, region.rows.mean(keepdims=True),
+                                                      region.cols.mean(keepdims=True))])
+            found = warm if warm is not None else self._full(reference, current, flow, region, camera=at)
             if found is not None:
                 u, v, sigma = found
                 self.last_sigmas_px[region.label] = self._reported_sigma(region, sigma)
                 flow[region.rows, region.cols, 0] = u
                 flow[region.rows, region.cols, 1] = v
-        if self._background is not None and current.shape == self._bound_shape:
-            self._read_background(current, flow)
         if self._chaining:
             self._motion_px = _poi_motion(flow, self._poi_rows, self._poi_cols)
         return flow
 
-    def _read_background(self, current: np.ndarray, flow: np.ndarray) -> None:
+    def _read_background(self, current: np.ndarray, flow: np.ndarray) -> np.ndarray | None:
         """The background points' motion from their texture: one affine correlation subset over
         all of them, started from the dense flow there, written over the dense flow at those
-        points (the driver fits the camera's motion to them). Where the fit fails the dense
-        flow stays."""
+        points (the driver fits the camera's motion to them); its affine parameters returned.
+        Where the fit fails the dense flow stays (None)."""
         fit = self._background
         u, v = flow[fit.rows, fit.cols, 0], flow[fit.rows, fit.cols, 1]
         start = fit.params_from_flow(u, v, fit.rows, fit.cols)
         found = None if start is None else fit.fit(current, start)
         if found is None or not (found.converged and all(np.isfinite(found.sigma_px))):
-            return
+            return None
         u, v = fit.field(found.params, self._read_rows, self._read_cols)
         flow[self._read_rows, self._read_cols, 0] = u
         flow[self._read_rows, self._read_cols, 1] = v
         self.counts["background_texture_readings"] += 1
+        return found.params
 
     def _reported_sigma(self, region: _Region, sigma: tuple[float, float], *,
                         reading: bool = True) -> tuple[float, float]:
@@ -818,10 +825,11 @@ class DeepFlow(DenseMethod):
         if reason is not None:
             self.counts[f"why_{reason}"] += 1
 
-    def _full(self, reference: np.ndarray, current: np.ndarray, flow: np.ndarray,
-              region: _Region) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
+    def _full(self, reference: np.ndarray, current: np.ndarray, flow: np.ndarray, region: _Region, *,
+              camera: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
         """A region's POI motion from its texture or its edges, starting from the dense
-        ``flow``; None where the dense flow stays (neither fits)."""
+        ``flow``; None where the dense flow stays (neither fits). ``camera``: the camera's image
+        motion (u, v) px at the region, where a background gives it."""
         region.restart()
         dense_u = flow[region.rows, region.cols, 0]
         dense_v = flow[region.rows, region.cols, 1]
@@ -844,7 +852,7 @@ class DeepFlow(DenseMethod):
             self._count(None, "outline_background_moves")
         elif region.member is not None:
             prior = flow[region.prior_rows, region.prior_cols].astype(np.float64)
-            fit = region.member.fit(current, prior, gain=region.gain(current))
+            fit = region.member.fit(current, prior, gain=region.gain(current), camera=camera)
             if fit.ok:
                 u, v, edges, along = region.motion(reference, current, fit, region.along(dense_u, dense_v))
                 # The edges must not make the POIs' own match worse than the dense flow's.
