@@ -773,10 +773,8 @@ class DeepFlow(DenseMethod):
             camera = self._read_background(current, flow)
         for region, warm in zip(regions, tracked, strict=True):
             self.check_stop()
-            at = None if camera is None else np.array(
-                [c[0] for c in self._background.field(camera, region.rows.mean(keepdims=True),
-                                                      region.cols.mean(keepdims=True))])
-            found = warm if warm is not None else self._full(reference, current, flow, region, camera=at)
+            found = warm if warm is not None else self._full(reference, current, flow, region,
+                                                             camera=self._camera_at(camera, region))
             if found is not None:
                 u, v, sigma = found
                 self.last_sigmas_px[region.label] = self._reported_sigma(region, sigma)
@@ -802,6 +800,14 @@ class DeepFlow(DenseMethod):
         flow[self._read_rows, self._read_cols, 1] = v
         self.counts["background_texture_readings"] += 1
         return found.params
+
+    def _camera_at(self, camera: np.ndarray | None, region: _Region) -> np.ndarray | None:
+        """The camera's image motion (u, v) px at a region's centroid from the background's
+        affine parameters ``camera`` (None: not known)."""
+        if camera is None:
+            return None
+        u, v = self._background.field(camera, np.array([region.rows.mean()]), np.array([region.cols.mean()]))
+        return np.array([u[0], v[0]])
 
     def _reported_sigma(self, region: _Region, sigma: tuple[float, float], *,
                         reading: bool = True) -> tuple[float, float]:
