@@ -548,31 +548,29 @@ class MemberEdges:
 
     # -- outline location --------------------------------------------------------------------------
 
+    def _strip_pixels(self, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns ``(N, 2 HALF + 1)`` of each profile's strip along its line, ordered
+        from the member outwards (index ``HALF`` at the pixel ``centre``); not clipped to the image."""
+        offsets = np.arange(-HALF, HALF + 1)
+        along = centre[:, None] + self.side[:, None] * offsets[None, :]
+        line = np.broadcast_to(self.line[:, None], along.shape)
+        return np.where(self.vertical[:, None], along, line), np.where(self.vertical[:, None], line, along)
+
     def _strips(self, image: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel values along each profile's line, ordered from the member outwards.
 
         Returns ``(values (N, 2 HALF + 1), inside)``; strip index ``HALF`` is the pixel
         ``centre`` (integer, along the line).
         """
-        offsets = np.arange(-HALF, HALF + 1)
-        along = centre[:, None] + self.side[:, None] * offsets[None, :]
+        rows, cols = self._strip_pixels(centre)
         height, width = image.shape
-        length = np.where(self.vertical, height, width)[:, None]
-        inside = np.all((along >= 0) & (along < length), axis=1)
-        along = np.clip(along, 0, length - 1)
-        line = np.broadcast_to(self.line[:, None], along.shape)
-        rows = np.where(self.vertical[:, None], along, line)
-        cols = np.where(self.vertical[:, None], line, along)
-        return image[rows, cols].astype(np.float64), inside
+        inside = np.all((rows >= 0) & (rows < height) & (cols >= 0) & (cols < width), axis=1)
+        return image[np.clip(rows, 0, height - 1), np.clip(cols, 0, width - 1)].astype(np.float64), inside
 
     def _moved_strips(self, image: np.ndarray, centre: np.ndarray, motion: np.ndarray) -> np.ndarray:
         """:meth:`_strips` of ``image`` as it shows after moving by ``motion`` (u, v) px: each
         pixel sampled (bilinear) where that motion brought it from; NaN from outside it."""
-        offsets = np.arange(-HALF, HALF + 1)
-        along = centre[:, None] + self.side[:, None] * offsets[None, :]
-        line = np.broadcast_to(self.line[:, None], along.shape)
-        rows = np.where(self.vertical[:, None], along, line).astype(np.float64)
-        cols = np.where(self.vertical[:, None], line, along).astype(np.float64)
+        rows, cols = self._strip_pixels(centre)
         return sample(image, cols - motion[0], rows - motion[1]).astype(np.float64)
 
     def _centre(self, guess: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
