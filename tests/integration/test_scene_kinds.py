@@ -104,6 +104,15 @@ def _scene(kind: str, seed: int) -> Clip:
 
         def motion(t, x, y):
             return np.full_like(x, amp[t]), np.zeros_like(x)
+    elif kind == "along":  # a faintly painted bar moving along its length (a column settling)
+        amp = 2.0 * np.sin(2 * np.pi * 1.7 * t_axis)
+        member = 150 + 4 * _texture(*fine, rng, 1.5)
+        inside[:, 84 * UP:124 * UP] = True
+        mask[10:150, 90:118] = True
+        axis = "y"
+
+        def motion(t, x, y):
+            return np.zeros_like(x), np.full_like(x, amp[t])
     elif kind == "round":  # a column shaded bright to dark across, with a faint texture
         amp = 3.5 * np.sin(2 * np.pi * 1.9 * t_axis)
         xs = np.arange(fine[1]) / UP
@@ -151,7 +160,7 @@ def _run(tmp_path: Path, clip: Clip, video: Path, name: str, *extra: str) -> tup
 # The default must not lose to a plain baseline on any kind (within 10 %, or a floor of a few
 # hundredths of a pixel that H.264 leaves on every reading), read the scale right and keep
 # its frames valid.
-KINDS = ["panel", "whole-view", "rotation", "tiny", "large", "round"]
+KINDS = ["panel", "whole-view", "rotation", "tiny", "large", "round", "along"]
 # The shaded round member with a faint texture: its outline (the limb darkening into the wall, no
 # step to fit) once read 0.19 px RMS, 6 % long, with its own uncertainty at 0.3-1.8 px, where DIS
 # read 0.15 (an xfail until 2026-12-03): an outline that imprecise is now refused and the dense
@@ -165,9 +174,11 @@ def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) 
     print(f"{kind}: default RMSE {ours[0]:.4f} px slope {ours[1]:.4f} valid {ours[2]:.2f}; "
           f"dis {base[0]:.4f} / {base[1]:.4f}")
     assert ours[0] <= max(1.1 * base[0], 0.05)
-    if kind == "tiny":
+    if kind in ("tiny", "along"):
         # H.264 keeps part of a few tenths of a pixel's motion from every method (DIS reads this
-        # clip 4 % short, the default 5.6 %): no worse than DIS by more than 0.03.
+        # clip 4 % short, the default 5.6 %), and part of a faint paint's motion along a member
+        # whose edges do not show it (DIS 10 % short, the default 3 %; 60 % short before the
+        # paint's own fit read it): no worse than DIS by more than 0.03.
         assert abs(ours[1] - 1.0) <= 0.07 and ours[1] >= base[1] - 0.03
     else:
         assert abs(ours[1] - 1.0) <= 0.015
@@ -179,6 +190,8 @@ def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) 
     assert sum(timings[k] for k in choices) == timings["full_frames"]
     if kind in ("panel", "whole-view", "rotation"):  # strong texture: the texture fit
         assert timings["affine_readings"] >= 0.9 * FRAMES and timings["why_texture_fixes_motion"] >= 1
+    if kind == "along":  # the outline across the bar, the paint's own fit along it
+        assert timings["outline_readings"] >= 0.9 * FRAMES and timings["along_texture"] >= 0.5 * FRAMES
     if kind == "round":  # the imprecise outline refused, the dense flow read
         assert timings["why_outline_imprecise"] >= 1 and timings["dense_readings"] >= 1
     # The bound can fail: the same reading 5 % short breaks the slope's.

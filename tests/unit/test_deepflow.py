@@ -242,21 +242,21 @@ def test_member_motion_takes_the_along_member_motion_that_matches_the_pois():
     prior = np.tile([3.0, 0.0], (len(region.prior_rows), 1))
     fit = region.member.fit(current, prior)
     assert fit.ok
-    u, v, own, taken = region.motion(reference, current, fit)
+    u, v, own, taken, _ = region.motion(reference, current, fit)
     assert taken is None and abs(np.mean(u) - 3.0) < 0.05 and abs(np.mean(v)) < 0.05
 
     t_dir = region.member.axes[:, 0]
     wrong = fit.params.copy()
     wrong[3] += 1.5  # the along-member translation, off by 1.5 px
     bad = deepflow_module.MemberFit(True, wrong, fit.cov, fit.n_used, fit.n_profiles, fit.scale)
-    u, v, off, taken = region.motion(reference, current, bad)
+    u, v, off, taken, _ = region.motion(reference, current, bad)
     assert taken is None and abs(np.mean(u * t_dir[0] + v * t_dir[1]) - 1.5) < 0.05 and off > own
     zero = np.zeros(len(region.rows))
-    u, v, fixed, taken = region.motion(reference, current, bad, zero)
+    u, v, fixed, taken, _ = region.motion(reference, current, bad, zero)
     assert taken is not None and abs(np.mean(v)) < 0.05 and abs(np.mean(u) - 3.0) < 0.05
     assert fixed < off
     # A wrong along-member motion given does not replace a right field.
-    u, v, kept, taken = region.motion(reference, current, fit, np.full(len(region.rows), 2.0))
+    u, v, kept, taken, _ = region.motion(reference, current, fit, np.full(len(region.rows), 2.0))
     assert taken is None and kept == own and abs(np.mean(v)) < 0.05
 
 

@@ -117,6 +117,29 @@ def test_a_tracked_frame_does_not_reuse_its_keys_along_member_motion() -> None:
     np.testing.assert_allclose(read[:, 0], truth[:, 0], atol=0.25)
 
 
+def test_a_faint_paint_reads_the_members_motion_along_itself() -> None:
+    """A faintly painted bar (4 grey levels) slides 1.5 px along itself while it moves 0.5 px
+    across. The outline has no edge along it (the bar runs on beyond the POIs) and the dense
+    flow's smoothing reads such a motion about half (a bar of our scene kinds sliding along its
+    length: slope 0.40, DIS 0.88): given half, the POIs took it (today's main). The paint's own
+    translation fit reads it and the POIs match it clearly better: taken. Where the along motion
+    given is right (no sliding), it is kept (the check can fail)."""
+    render, poi = _sliding_bar(4.0, 1.5, noise_grey=1.0)
+    reference = render(0.0, 0.0).astype(np.float32)
+    for along, taken in ((1.5, True), (0.0, False)):
+        region = deepflow_module._Region.of(reference, poi, 1, member=True, texture=True)
+        current = render(0.5, along).astype(np.float32)
+        fit = region.member.fit(current, np.tile([0.5, along / 2], (len(region.prior_rows), 1)))
+        assert fit.ok
+        half = np.full(len(region.rows), along / 2)
+        u, v, _, given, state = region.motion(reference, current, fit, half)
+        assert state is None and abs(np.mean(v) - along) > 0.5 * along - 0.05
+        u, v, _, given, state = region.motion(reference, current, fit, half, texture=True)
+        assert state == ("taken" if taken else "converged"), state
+        assert abs(np.mean(v) - along) < 0.1 and abs(np.mean(u) - 0.5) < 0.05
+        assert (region.along_seen is not None) == taken
+
+
 def test_an_along_member_motion_beyond_its_uncertainty_moves() -> None:
     sigma = (0.02, 0.1)
     assert not deepflow_module._along_moves(None, sigma)  # the outline's own

@@ -147,6 +147,25 @@ MAX_WARM_STEP_PX = 3.0
 # this factor of the dense flow's plus MATCH_SLACK grey levels (sensor noise moves both alike).
 MATCH_TOLERANCE = 1.1
 MATCH_SLACK = 0.5
+# An outline fixes a member's motion across it; along the member (a column settling, a deck
+# moving lengthwise, a bar sliding along its axis) it has only the ends of its grown mask, and
+# the dense flow's smoothing over a faint paint reads that motion about half (a painted bar of
+# 4 grey levels moving +-2 px along its length, H.264: slope 0.40, RMSE 0.90 px; DIS 0.88 /
+# 0.22). The region's own texture, however faint, is a third witness: a translation fit over
+# ALONG_POINTS of its pixels (a regular subsample: the cost), to ALONG_TOLERANCE_PX, started at
+# the outline's motion in a full measurement (the fit's whole budget) and at the motion the
+# chain's texture readings predict in a tracked frame (ALONG_ITERATIONS steps at most; a chain
+# whose key's fit did not converge, the bench's painted bars mostly, does not try). Its
+# along-member motion is taken where the POIs match it clearly better than the other two's, its
+# mismatch below ALONG_CLEAR times the better one's: the bar sliding along its length matched
+# it 1.3-2.5x better (read now 0.19 px, slope 0.93-0.97); the bench's painted bars, whose paint a
+# codec rebuilds in every frame, a few per cent better at most, where its along-member reading
+# is the worse (against the truth, taken wherever it matched better at all: bend 0.21 -> 0.28 px,
+# edge-on-thin 0.12 -> 0.41, tiny 0.07 -> 0.23).
+ALONG_POINTS = 1000
+ALONG_ITERATIONS = 20
+ALONG_TOLERANCE_PX = 2e-3
+ALONG_CLEAR = 0.9
 
 
 def _mismatch(reference: np.ndarray, current: np.ndarray, cols: np.ndarray, rows: np.ndarray,
@@ -299,6 +318,10 @@ class _Region:
     reference: np.ndarray | None = None  # kept for the codec floor (None: the frames are lossless)
     codec_crf: float | None = None  # the lossy stream's quality (see flow.methods.deepflow.codecfloor)
     codec_floor_px: tuple[float, float] | None = None  # measured on the first texture reading
+    along_fit: RegionFit | None = None  # the quick translation fit of the along-member motion
+    along_tried: bool = False  # the chain's key's texture along fit converged: its frames try it too
+    along_texture: bool = False  # and the key took its along-member motion: its frames take theirs
+    along_seen: tuple | None = None  # the texture's along-member motion of the last two frames taking it
 
     @classmethod
     def of(cls, reference: np.ndarray, mask: np.ndarray, label: int, *, member: bool,
@@ -316,20 +339,25 @@ class _Region:
             prior_rows = np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1)
             prior_cols = np.clip(np.rint(inward_x).astype(np.intp), 0, width - 1)
         lossy = fit is not None and codec_crf is not None
+        along_fit = None if fit is None or edges is None else RegionFit(
+            reference, rows, cols, bias_correction=bias_correction, max_points=ALONG_POINTS,
+            tolerance_px=ALONG_TOLERANCE_PX)
         return cls(label, edges, fit, rows, cols, prior_rows, prior_cols,
                    float(np.median(reference[mask])) or 1.0, reference=reference if lossy else None,
-                   codec_crf=codec_crf if lossy else None)
+                   codec_crf=codec_crf if lossy else None, along_fit=along_fit)
 
     def restart(self) -> None:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
-        self.static_known = False
+        self.static_known, self.along_tried, self.along_texture, self.along_seen = False, False, False, None
         self.affine, self.affine_before, self.key_residual = None, None, float("nan")
         self.key_rms = float("nan")
 
     def motion(self, reference: np.ndarray, current: np.ndarray, fit: MemberFit,
-               along: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
-        """The POIs' motion from a member fit, its photometric mismatch, and the along-member
-        motion it took from elsewhere (None: the fit's own).
+               along: np.ndarray | None = None, *, texture: bool = False, texture_first: bool = False,
+               tracked: bool = False) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None, str | None]:
+        """The POIs' motion from a member fit, its photometric mismatch, the along-member
+        motion it took from elsewhere (None: the fit's own), and what became of the texture's
+        along fit (see below): None (not tried, or not converged), "converged" or "taken".
 
         The outline measures the motion across the member along its long edges; along the
         member it has only the ends of the grown mask, which are no edges where the member
@@ -337,19 +365,49 @@ class _Region:
         Given the POIs' along-member motion from elsewhere (``along``: the dense flow's in
         a full measurement, the chain key's in a tracked frame), the POIs also try the
         field's across-member motion with that along-member motion, and take whichever of
-        the two matches them better.
+        the two matches them better. With ``texture``, the region's own texture's along-member
+        motion (a quick translation fit, see ALONG_CLEAR) is taken where the POIs match it
+        clearly better than the better of those two; with ``texture_first`` too, wherever it
+        converges (a chain whose key took it: its key's along-member motion is a past frame's).
+        A ``tracked`` frame's fit starts from the motion the chain's texture readings predict
+        (see :attr:`along_seen`) and takes ALONG_ITERATIONS steps at most; a full measurement's
+        from the better of the other two, with the fit's full budget.
         """
         u, v = self.member.displacement(fit)
         best = (u, v, _mismatch(reference, current, self.cols, self.rows, u, v), None)
         if along is not None:
-            n_dir, t_dir = self.member.axes[:, 1], self.member.axes[:, 0]
-            across = u * n_dir[0] + v * n_dir[1]
-            mixed_u = across * n_dir[0] + along * t_dir[0]
-            mixed_v = across * n_dir[1] + along * t_dir[1]
-            mixed = _mismatch(reference, current, self.cols, self.rows, mixed_u, mixed_v)
-            if mixed < best[2]:
-                best = (mixed_u, mixed_v, mixed, along)
-        return best
+            mixed = self._with_along(reference, current, u, v, along)
+            if mixed[2] < best[2]:
+                best = mixed
+        state = None
+        if (texture or texture_first) and self.along_fit is not None:
+            start_u, start_v = best[0], best[1]
+            if tracked and self.along_seen is not None:
+                last, before = self.along_seen
+                start_u, start_v = self._mix(u, v, last if before is None else 2.0 * last - before)
+            start = self.along_fit.params_from_flow(start_u, start_v, self.rows, self.cols)
+            found = None if start is None else self.along_fit.fit_translation(
+                current, start, max_iterations=ALONG_ITERATIONS if tracked else None)
+            if found is not None and found.converged:
+                state = "converged"
+                own = self.along(*self.along_fit.field(found.params, self.rows, self.cols))
+                mixed = self._with_along(reference, current, u, v, own)
+                if texture_first or mixed[2] < ALONG_CLEAR * best[2]:
+                    best, state = mixed, "taken"
+                    self.along_seen = (own, None if self.along_seen is None else self.along_seen[0])
+        return (*best, state)
+
+    def _mix(self, u: np.ndarray, v: np.ndarray, along: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The motion ``(u, v)`` across the member with ``along`` along it."""
+        n_dir, t_dir = self.member.axes[:, 1], self.member.axes[:, 0]
+        across = u * n_dir[0] + v * n_dir[1]
+        return across * n_dir[0] + along * t_dir[0], across * n_dir[1] + along * t_dir[1]
+
+    def _with_along(self, reference: np.ndarray, current: np.ndarray, u: np.ndarray, v: np.ndarray,
+                    along: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+        """:meth:`_mix`, its mismatch, and ``along``."""
+        mixed_u, mixed_v = self._mix(u, v, along)
+        return mixed_u, mixed_v, _mismatch(reference, current, self.cols, self.rows, mixed_u, mixed_v), along
 
     def along(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """The along-member component of a motion at the POIs."""
@@ -636,7 +694,7 @@ class DeepFlow(DenseMethod):
         # sums every instance's counts into the sidecar's timings.
         # (``reach_widened``: dense solves done again with a longer reach, see WIDEN_SHARE.)
         self.counts = dict.fromkeys(("full_frames", "warm_frames", "outline_readings", "affine_readings",
-                                     "dense_readings", "background_texture_readings", "reach_widened",
+                                     "dense_readings", "background_texture_readings", "along_texture", "reach_widened",
                                      "codec_floor_s",
                                      "codec_floor_x_px", "codec_floor_y_px",
                                      *(f"why_{reason}" for reason in REASONS)), 0)
@@ -860,7 +918,9 @@ class DeepFlow(DenseMethod):
             prior = flow[region.prior_rows, region.prior_cols].astype(np.float64)
             fit = region.member.fit(current, prior, gain=region.gain(current), camera=camera)
             if fit.ok:
-                u, v, edges, along = region.motion(reference, current, fit, region.along(dense_u, dense_v))
+                u, v, edges, along, state = region.motion(
+                    reference, current, fit, region.along(dense_u, dense_v), texture=True)
+                region.along_tried, region.along_texture = state is not None, state == "taken"
                 # The edges must not make the POIs' own match worse than the dense flow's.
                 sigma = region.member.mean_sigma(fit)
                 if min(sigma) > OUTLINE_MAX_SIGMA_PX:
@@ -880,6 +940,8 @@ class DeepFlow(DenseMethod):
             outline = None
         chosen, model, reason = _choose(affine, outline, strong, deforms)
         self._count(model, reason)
+        if model == "outline" and region.along_texture:
+            self.counts["along_texture"] += 1
         if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
             region.model, region.theta, region.key_along = "outline", fit.params, along
         elif self._chaining and model == "affine":
@@ -921,7 +983,11 @@ class DeepFlow(DenseMethod):
         fit = member.fit(current, prior, gain=region.gain(current))
         if not fit.ok:
             return None
-        u, v, edges, _ = region.motion(reference, current, fit, region.key_along)
+        u, v, edges, _, state = region.motion(reference, current, fit, region.key_along,
+                                              texture=region.along_tried, texture_first=region.along_texture,
+                                              tracked=True)
+        if region.along_seen is not None and state is None:
+            return None  # the texture that read the chain's along-member motion lost it: measured in full
         now_u, now_v = member.poi_field.uv(fit.params)
         before_u, before_v = member.poi_field.uv(region.theta)
         step = float(np.hypot(np.mean(now_u - before_u), np.mean(now_v - before_v)))
@@ -935,6 +1001,8 @@ class DeepFlow(DenseMethod):
             return None
         region.theta = fit.params
         self._count("outline")
+        if state == "taken":
+            self.counts["along_texture"] += 1
         return u, v, sigma
 
 

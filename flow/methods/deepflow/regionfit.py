@@ -149,6 +149,10 @@ class RegionFit:
         The reference frame (grey, any real dtype).
     rows, cols : ndarray (N,) int
         The region's pixels.
+    max_points, tolerance_px
+        The most pixels the fit takes (a regular subsample of them) and the step (px) below
+        which it has converged: :data:`MAX_POINTS` and :data:`TOLERANCE_PX` unless a quicker,
+        rougher fit is wanted.
     bias_correction : bool
         Take the fit's own sub-pixel bias, measured on the reference (see :meth:`bias_curve`),
         off every reading. Right where the frames are what a camera records (raw, lossless);
@@ -157,7 +161,8 @@ class RegionFit:
     """
 
     def __init__(self, reference: np.ndarray, rows: np.ndarray, cols: np.ndarray, *,
-                 bias_correction: bool = True) -> None:
+                 bias_correction: bool = True, max_points: int = MAX_POINTS,
+                 tolerance_px: float = TOLERANCE_PX) -> None:
         rows = np.asarray(rows, np.intp)
         cols = np.asarray(cols, np.intp)
         if rows.shape != cols.shape or rows.ndim != 1 or rows.size < 8:
@@ -165,7 +170,8 @@ class RegionFit:
         self.shape = reference.shape
         self.x0, self.y0 = float(cols.mean()), float(rows.mean())
         self.scale = max(float(np.ptp(cols)), float(np.ptp(rows)), 1.0) / 2.0
-        step = int(np.ceil(rows.size / MAX_POINTS))
+        step = int(np.ceil(rows.size / max_points))
+        self.tolerance_px = tolerance_px
         rows, cols = rows[::step], cols[::step]
         self.rows, self.cols = rows, cols
         # Filters run on the region's bounding box plus their reach, not on the whole frame.
@@ -248,6 +254,16 @@ class RegionFit:
         found = self._solve(current, start, _AFFINE)
         if not (found.converged or found.iterations == 0):
             found = self._solve(current, start, _TRANSLATION)
+        return self._unbiased(found)
+
+    def fit_translation(self, current: np.ndarray, start: np.ndarray, *,
+                        max_iterations: int | None = None) -> RegionMotion:
+        """:meth:`fit` with the translation alone free, the deformation kept at the start's, in
+        at most ``max_iterations`` steps (None: the fit's own budget)."""
+        return self._unbiased(self._solve(current, start, _TRANSLATION, max_iterations))
+
+    def _unbiased(self, found: RegionMotion) -> RegionMotion:
+        """``found`` with the fit's own bias (see :meth:`bias`) taken off, where it is on."""
         if not (found.converged and self.bias_correction):
             return found
         bias_u, bias_v = self.bias(found.params)
@@ -310,7 +326,8 @@ class RegionFit:
         self._bias_coefficients = coefficients
         return coefficients
 
-    def _solve(self, current: np.ndarray, start: np.ndarray, free: np.ndarray) -> RegionMotion:
+    def _solve(self, current: np.ndarray, start: np.ndarray, free: np.ndarray,
+               max_iterations: int | None = None) -> RegionMotion:
         start = np.asarray(start, np.float64)
         params = start.copy()
         failed = RegionMotion(params, False, (float("nan"), float("nan")), float("nan"), 0, 0.0)
@@ -322,7 +339,7 @@ class RegionFit:
         error = np.zeros(self.rows.size)
         converged, iteration = False, 0
         height, width = self.shape
-        for iteration in range(1, MAX_ITERATIONS + 1):  # noqa: B007 (read after the loop)
+        for iteration in range(1, (max_iterations or MAX_ITERATIONS) + 1):  # noqa: B007 (read after the loop)
             xs, ys = self._positions(params)
             if not (np.all(np.isfinite(xs)) and xs.min() > -1 and ys.min() > -1
                     and xs.max() < width and ys.max() < height):
@@ -354,7 +371,7 @@ class RegionFit:
             moved = np.abs(step[0]) + np.abs(step[3]) + np.abs(step[[1, 2, 4, 5]]).sum()
             if not np.isfinite(moved):
                 return failed
-            if moved < TOLERANCE_PX:
+            if moved < self.tolerance_px:
                 converged = True
                 break
         if np.hypot(params[0] - start[0], params[3] - start[3]) > MAX_TRAVEL_PX:
