@@ -140,6 +140,54 @@ def test_a_faint_paint_reads_the_members_motion_along_itself() -> None:
         assert (region.along_seen is not None) == taken
 
 
+def _cable(thickness: float, paint_std: float, mask_rows: tuple[int, int]) -> tuple:
+    """A dark horizontal member ``thickness`` px thick, painted with ``paint_std`` grey levels of
+    texture, over a bright sky (a smooth gradient), and a mask over ``mask_rows`` of it."""
+    height, width, y0 = 96, 160, 40.0
+    paint = 60 + paint_std * smooth_noise(height, width, 1.0, np.random.default_rng(3))
+    gx, gy = grid(height, width)
+    sky = 200 - 0.1 * gy
+    rng = np.random.default_rng(8)
+
+    def render(dy: float) -> np.ndarray:
+        cover = np.clip(np.minimum(gy + 0.5 - (y0 + dy), (y0 + thickness + dy) - (gy - 0.5)), 0, 1)
+        return to_u8(sky * (1 - cover) + fourier_shift(paint.T, dy, 0.0).T * cover
+                     + rng.normal(0, 1.0, (height, width)))
+
+    poi = np.zeros((height, width), bool)
+    poi[mask_rows[0]:mask_rows[1], 20:140] = True
+    return render, poi
+
+
+def test_a_thin_members_outline_does_not_make_its_texture_strong() -> None:
+    """A cable 6 px thick (4 grey levels of paint) with a mask 5 px across it: every POI lies within 3 px of its outline,
+    whose step made the region's texture 'strong', and the texture fit over it was taken (our
+    cable clip: 0.12 px RMS where the outline and the dense flow read 0.04). Its strength away
+    from the outline is nothing: the outline or the dense flow reads it. The same paint on a
+    member 30 px thick keeps its strength (the check can fail)."""
+    render, poi = _cable(6.0, 4.0, (41, 46))
+    reference = render(0.0)
+    region = deepflow_module._Region.of(reference.astype(np.float32), poi, 1, member=True, texture=True)
+    assert min(region.texture.gradient_rms) >= deepflow_module.MIN_TEXTURE_GRADIENT  # the old rule
+    assert max(region.texture_strength) < deepflow_module.MIN_TEXTURE_GRADIENT
+    method = deepflow_module.DeepFlow()
+    method.bind(reference, poi)
+    method.restart()
+    errors = []
+    for dy in (0.8, 1.6, 2.4, 1.2, 0.4):
+        flow = method.calc(reference, render(dy))
+        errors.append(float(np.mean(flow[..., 1][poi])) - dy)
+    # (Today's main took the texture fit in three of the five frames: 0.19 px mean error across,
+    # 0.28 px at 0.4 px; the dense flow reads 0.11, none above 0.2. Along the cable the dense
+    # flow is lost, 1-6 px: the outline, refused here over a sky without texture, is not yet
+    # taken with the paint's own along-member motion.)
+    assert np.mean(np.abs(errors)) < 0.14 and max(np.abs(errors)) < 0.21, errors
+    assert method.counts["affine_readings"] == 0
+    render, poi = _cable(30.0, 4.0, (46, 66))
+    region = deepflow_module._Region.of(render(0.0).astype(np.float32), poi, 1, member=True, texture=True)
+    assert min(region.texture_strength) >= deepflow_module.MIN_TEXTURE_GRADIENT
+
+
 def test_an_along_member_motion_beyond_its_uncertainty_moves() -> None:
     sigma = (0.02, 0.1)
     assert not deepflow_module._along_moves(None, sigma)  # the outline's own

@@ -18,6 +18,7 @@ import time
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from flow.measure.photometric import sample
 from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
@@ -197,6 +198,12 @@ TEXTURE_ENOUGH_PX = 0.012
 # bars 0.23-0.67; textured panel, whole view, bolted plate, slab, girder 1.5-7.7; the shaded
 # column 4.1 across and 0.2 along.
 MIN_TEXTURE_GRADIENT = 1.0
+# ... over the region's pixels more than OUTLINE_CLEAR_PX from the member's outline in the
+# reference: an outline's step is the outline model's to read, and its pixels change layer as
+# the member moves over what is behind it. A thin cable's mask (5 px across a 6 px cable) is all
+# outline: its step made the texture 'strong', and the texture fit over it read 0.12 px RMS
+# where the outline and the dense flow read 0.04.
+OUTLINE_CLEAR_PX = 3.0
 # The outline model needs an outline between two layers: the member and a background that
 # either stands still behind it or moves with it (a plate fixed to the member, a whole view
 # moving), not one that the dense flow drags part of the way. In a full measurement the dense
@@ -319,6 +326,7 @@ class _Region:
     codec_crf: float | None = None  # the lossy stream's quality (see flow.methods.deepflow.codecfloor)
     codec_floor_px: tuple[float, float] | None = None  # measured on the first texture reading
     along_fit: RegionFit | None = None  # the quick translation fit of the along-member motion
+    texture_strength: tuple[float, float] = (0.0, 0.0)  # the texture's strength away from the outline
     along_tried: bool = False  # the chain's key's texture along fit converged: its frames try it too
     along_texture: bool = False  # and the key took its along-member motion: its frames take theirs
     along_seen: tuple | None = None  # the texture's along-member motion of the last two frames taking it
@@ -342,9 +350,10 @@ class _Region:
         along_fit = None if fit is None or edges is None else RegionFit(
             reference, rows, cols, bias_correction=bias_correction, max_points=ALONG_POINTS,
             tolerance_px=ALONG_TOLERANCE_PX)
+        strength = (0.0, 0.0) if fit is None else fit.gradient_rms_of(_clear_of(edges, fit.rows, fit.cols))
         return cls(label, edges, fit, rows, cols, prior_rows, prior_cols,
                    float(np.median(reference[mask])) or 1.0, reference=reference if lossy else None,
-                   codec_crf=codec_crf if lossy else None, along_fit=along_fit)
+                   codec_crf=codec_crf if lossy else None, along_fit=along_fit, texture_strength=strength)
 
     def restart(self) -> None:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
@@ -434,6 +443,26 @@ class _Region:
             floor = codec_floor(self.reference, self.rows, self.cols, self.codec_crf)
             self.codec_floor_px = tuple(f if np.isfinite(f) else 0.0 for f in floor)
         return tuple(float(np.hypot(s, f)) for s, f in zip(sigma, self.codec_floor_px, strict=True))
+
+
+def _clear_of(edges: MemberEdges | None, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Which of the pixels ``rows, cols`` lie more than OUTLINE_CLEAR_PX from every point of the
+    member's outline in the reference (all of them where there is no outline)."""
+    clear = np.ones(len(rows), bool)
+    if edges is None or len(edges.px) == 0:
+        return clear
+    pad = int(np.ceil(OUTLINE_CLEAR_PX)) + 1
+    r0, c0 = int(rows.min()) - pad, int(cols.min()) - pad
+    shape = (int(rows.max()) + pad + 1 - r0, int(cols.max()) + pad + 1 - c0)
+    at_r = np.rint(edges.py).astype(np.intp) - r0
+    at_c = np.rint(edges.px).astype(np.intp) - c0
+    near = (at_r >= 0) & (at_r < shape[0]) & (at_c >= 0) & (at_c < shape[1])
+    if not near.any():
+        return clear
+    free = np.ones(shape, bool)
+    free[at_r[near], at_c[near]] = False
+    distance = ndimage.distance_transform_edt(free)
+    return distance[rows - r0, cols - c0] > OUTLINE_CLEAR_PX
 
 
 def _along_moves(along: np.ndarray | None, sigma: tuple[float, float]) -> bool:
@@ -899,7 +928,7 @@ class DeepFlow(DenseMethod):
         dense_v = flow[region.rows, region.cols, 1]
         affine, texture, deforms = None, None, False
         # A texture too weak to be trusted is never taken (see _choose): not fitted at all.
-        strong = region.texture is not None and min(region.texture.gradient_rms) >= MIN_TEXTURE_GRADIENT
+        strong = region.texture is not None and min(region.texture_strength) >= MIN_TEXTURE_GRADIENT
         if strong:
             start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
             texture = None if start is None else region.texture.fit(current, start)

@@ -204,10 +204,18 @@ class RegionFit:
         # The texture's strength: the rms grey-level gradient over the region (the reference
         # smoothed over a pixel, so that sensor noise does not count), along x and y.
         smooth = ndimage.gaussian_filter(ref, 1.0)
-        self.gradient_rms = tuple(
-            float(np.sqrt(np.mean(ndimage.correlate1d(smooth, _DERIVATIVE, axis=axis, mode="nearest")
-                                  [local_rows, local_cols] ** 2)))
-            for axis in (1, 0))
+        self._smooth_gradient = np.column_stack([
+            ndimage.correlate1d(smooth, _DERIVATIVE, axis=axis, mode="nearest")[local_rows, local_cols]
+            for axis in (1, 0)])
+        self.gradient_rms = self.gradient_rms_of(np.ones(rows.size, bool))
+
+    def gradient_rms_of(self, keep: np.ndarray) -> tuple[float, float]:
+        """The texture's strength (see :attr:`gradient_rms`) over the fit's pixels ``keep``
+        (bool over :attr:`rows`, :attr:`cols`); 0 where none is kept."""
+        kept = self._smooth_gradient[np.asarray(keep, bool)]
+        if kept.size == 0:
+            return 0.0, 0.0
+        return tuple(float(x) for x in np.sqrt(np.mean(kept ** 2, axis=0)))
 
     def field(self, params: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The displacement ``(u, v)`` the affine ``params`` give at the pixels (float64)."""
