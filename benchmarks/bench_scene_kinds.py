@@ -27,8 +27,6 @@ Prints a Markdown table; asserts nothing (the tests hold the default to DIS on t
 from __future__ import annotations
 
 import argparse
-import csv
-import json
 import subprocess
 import sys
 import tempfile
@@ -145,17 +143,9 @@ def run(folder: Path, clip: Clip, method: str) -> dict:
                           capture_output=True, text=True, cwd=ROOT)
     if done.returncode:
         return {"error": done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "failed"}
-    with out.open() as handle:
-        rows = list(csv.DictReader(handle))
-    key = "dx_px" if clip.axis == "x" else "dy_px"
-    read = np.array([float(r[key]) for r in rows])
-    valid = np.array([r["valid"] == "1" for r in rows])
-    true = clip.truth_px - clip.truth_px[0]
-    ok = np.isfinite(read)
-    result = {"rmse": float(np.sqrt(np.mean((read[ok] - true[ok]) ** 2))),
-              "slope": float(np.polyfit(true[ok], read[ok], 1)[0]), "valid": float(valid.mean())}
+    rmse, slope, valid, timings = kinds.score(clip, out)
+    result = {"rmse": rmse, "slope": slope, "valid": valid}
     if method == "deepflow":
-        timings = json.loads(out.with_suffix(".json").read_text())["timings"]
         result["models"] = ", ".join(f"{name.removesuffix('_readings')} {int(timings[name])}"
                                      for name in ("outline_readings", "affine_readings", "dense_readings")
                                      if timings.get(name))

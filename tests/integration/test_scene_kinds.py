@@ -144,6 +144,12 @@ def _run(tmp_path: Path, clip: Clip, video: Path, name: str, *extra: str) -> tup
     cv2.imwrite(str(mask), clip.mask.astype(np.uint8) * 255)
     out = tmp_path / f"{name}.csv"
     assert main(["track", str(video), "--mask", str(mask), "--out", str(out), "--no-progress", *extra]) == 0
+    return score(clip, out)
+
+
+def score(clip: Clip, out: Path) -> tuple[float, float, float, dict]:
+    """RMSE (px) and slope of the track CSV ``out`` against the clip's truth along its axis,
+    the share of its frames valid, and its sidecar's timings."""
     with out.open() as handle:
         rows = list(csv.DictReader(handle))
     key = "dx_px" if clip.axis == "x" else "dy_px"
