@@ -154,7 +154,7 @@ MATCH_SLACK = 0.5
 # 4 grey levels moving +-2 px along its length, H.264: slope 0.40, RMSE 0.90 px; DIS 0.88 /
 # 0.22). The region's own texture, however faint, is a third witness: a translation fit over
 # ALONG_POINTS of its pixels (a regular subsample: the cost), to ALONG_TOLERANCE_PX, started at
-# the outline's motion in a full measurement (the fit's whole budget) and at the motion the
+# the better of the other two motions in a full measurement (the fit's whole budget) and at the motion the
 # chain's texture readings predict in a tracked frame (ALONG_ITERATIONS steps at most; a chain
 # whose key's fit did not converge, the bench's painted bars mostly, does not try). Its
 # along-member motion is taken where the POIs match it clearly better than the other two's, its
@@ -509,7 +509,8 @@ def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray 
                        current: np.ndarray | None = None) -> bool | None:
     """Whether the dense ``flow`` shows the background beyond the region's outline, on each
     side of the member, either standing still or moving with the member while the member
-    moves (None where the member's motion is too small to tell, or no side has profiles
+    moves, or its pixels show it moving on its own (see OWN_ACROSS; True too: an outline
+    between two layers either way) (None where the member's motion is too small to tell, or no side has profiles
     enough to vote); False where a side's background moves part of the way. Given the
     ``reference`` and ``current`` frames, a side whose flow says part of the way is still or
     moving with the member where its pixels clearly show it (see :func:`_background_seen`)."""
