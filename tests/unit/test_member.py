@@ -134,3 +134,29 @@ def test_a_known_background_is_taken_where_the_camera_moved_it():
     error = np.abs(blind.edge[kept] - (right + motion[6]))
     print(f"told: {found.sum()} profiles, blind: {kept.sum()}, blind median error {np.median(error) if kept.any() else np.nan:.3f} px")
     assert kept.sum() < 0.5 * found.sum() or np.median(error) > 0.1
+
+
+@pytest.mark.parametrize("blur", [0.0, 0.3, 1.0])
+def test_fine_fit_stopped_at_convergence_reads_what_every_step_reads(blur, monkeypatch):
+    # The compiled fine fit stops once a step is below CONVERGED_PX (where the pixels it uses
+    # stay the same); the same steps run to the end (the kernel's Python, never stopping) must
+    # read the same outlines, also on a sharp outline where a step lands on a pixel's boundary.
+    from flow.methods.deepflow import member
+
+    rng = np.random.default_rng(3)
+    n, length = 40, 2 * member.HALF + 1
+    start = member.HALF + rng.uniform(-0.5, 0.5, n)
+    start[0] = member.HALF - 0.5 + 1e-12  # just inside a pixel's boundary
+    edge = start + rng.normal(0.0, 0.3, n)
+    values = 60 + 90 * np.clip(edge[:, None] - np.arange(length)[None, :] + 0.5, 0, 1) + rng.normal(0, 1, (n, length))
+    coef = rng.normal(0.0, 0.1, (member.MAX_DISTANCE + 1, member.N_PREDICT))
+    error = np.abs(rng.normal(1.0, 0.1, member.MAX_DISTANCE + 1))
+    args = (values, start, np.ones(n, bool), np.zeros(n, bool), coef, coef, error, error, np.full(n, 60.0), blur, 1.0)
+    stopped = member._fine_steps(*args)
+    monkeypatch.setattr(member, "CONVERGED_PX", -1.0)  # the Python function reads the module's value
+    every = member._fine_steps.py_func(*args)
+    np.testing.assert_array_equal(stopped[4], every[4])
+    ok = stopped[4]
+    assert ok.sum() > n // 2
+    for got, want in zip(stopped[:4], every[:4], strict=True):
+        np.testing.assert_allclose(got[ok], want[ok], rtol=1e-5, atol=1e-6)

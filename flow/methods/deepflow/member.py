@@ -113,6 +113,8 @@ KNOWN_STATIC = 4.0
 SHIFT_HALF = 5
 # Gauss-Newton steps of one outline fit.
 N_STEPS = 8
+# A Gauss-Newton step below this (px; and relative, of the member's grey) ends the fine fit's steps.
+CONVERGED_PX = 1e-7
 # Farthest neighbour (lines apart) whose error correlation the uncertainty accounts for.
 MAX_LAG = 32
 
@@ -253,6 +255,30 @@ def _coverage(x: float, blur: float) -> tuple[float, float]:
 
 
 @njit(cache=True, nogil=True)
+def _boundary(b: float) -> tuple[float, float]:
+    """``(N(b), b N(b) + n(b))`` of a pixel boundary ``b`` blurs inside the outline: the
+    standard normal's distribution and its integral, which :func:`_coverage` differences
+    between a pixel's two boundaries (neighbouring pixels share one)."""
+    nb = 0.5 * math.erfc(-b * _SQRT_HALF)
+    return nb, b * nb + _INV_SQRT_2PI * math.exp(-0.5 * b * b)
+
+
+@njit(cache=True, nogil=True)
+def _same_pixels(before: float, after: float, reach: float, sharp: bool) -> bool:
+    """Whether the outline fit at ``after`` uses the pixels it used at ``before``: the same
+    member and background pixels, and on a sharp outline the same pixel in transition (a
+    converged step that crosses a pixel's boundary is not a fixed point)."""
+    for b in (before, after):
+        if b != b:
+            return False
+    same = (int(np.floor(before - 0.5 - reach)) == int(np.floor(after - 0.5 - reach))
+            and int(np.ceil(before + 0.5 + reach)) == int(np.ceil(after + 0.5 + reach)))
+    if sharp:
+        same = same and int(np.floor(before + 0.5)) == int(np.floor(after + 0.5))
+    return same
+
+
+@njit(cache=True, nogil=True)
 def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, col_error, mean,
                 blur, member_var):
     """Gauss-Newton steps of :meth:`MemberEdges._fine`, profile by profile (see there): the
@@ -270,6 +296,7 @@ def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, co
     contrast_out = np.zeros(n)
     ok_out = ok_in.copy()
     wall = np.empty(width)
+    sharp = blur < 0.05
     for i in range(n):
         coef = col_coef if vertical[i] else row_coef
         error = col_error if vertical[i] else row_error
@@ -289,6 +316,10 @@ def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, co
             first_bg = min(max(first_bg, 0), last - N_PREDICT)
             h11 = h12 = h22 = g1 = g2 = rr = 0.0
             n_used = 0
+            if sharp:
+                n_hi = phi_hi = 0.0
+            else:  # the first member pixel's inner boundary (later ones: the previous pixel's)
+                n_hi, phi_hi = _boundary((e - start + 0.5) / blur)
             for k in range(width):
                 j = start + k
                 used = j < first_bg
@@ -300,7 +331,12 @@ def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, co
                 wall[k] = w
                 if not used:
                     continue
-                phi, dphi = _coverage(e - j, blur)
+                if sharp:
+                    phi, dphi = _coverage(e - j, blur)
+                else:  # _coverage(e - j, blur), each boundary's functions computed once
+                    n_lo, phi_lo = _boundary((e - j - 0.5) / blur)
+                    phi, dphi = blur * (phi_hi - phi_lo), n_hi - n_lo
+                    n_hi, phi_hi = n_lo, phi_lo
                 r = values[i, j] - (w + (m - w) * phi)
                 wgt = 1.0 / (member_var + (1.0 - phi) ** 2 * error[distance])
                 je = (m - w) * dphi
@@ -314,10 +350,12 @@ def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, co
             det = h11 * h22 - h12 * h12
             good = det > 1e-12 * max(h11 * h22, 1e-30)
             member = m
+            de = dm = 0.0
             if good:
-                de = (h22 * g1 - h12 * g2) / det
-                e += min(max(de, -0.5), 0.5)
-                m += (h11 * g2 - h12 * g1) / det
+                de = min(max((h22 * g1 - h12 * g2) / det, -0.5), 0.5)
+                dm = (h11 * g2 - h12 * g1) / det
+                e += de
+                m += dm
                 var_e = h22 / det
             else:
                 var_e = np.nan
@@ -325,12 +363,78 @@ def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, co
             near = min(max(int(np.floor(e + 0.5)), 0), last)
             contrast = member - wall[min(max(near - start, 0), width - 1)]
             ok = ok and good
+            if (good and abs(de) < CONVERGED_PX and abs(dm) < CONVERGED_PX * max(abs(m), 1.0)
+                    and _same_pixels(e - de, e, reach, sharp)):
+                break  # converged: the steps left would repeat this one
         e_out[i] = e
         var_out[i] = var_e
         misfit_out[i] = misfit
         contrast_out[i] = contrast
         ok_out[i] = ok
     return e_out, var_out, misfit_out, contrast_out, ok_out
+
+
+@njit(cache=True, nogil=True)
+def _lerp_line(image, line, vertical, pos, length):
+    """``image`` along one profile's line at position ``pos`` (linear interpolation, clamped
+    to the line's ``length`` as :meth:`MemberEdges._shift` samples it), as float64."""
+    pos = min(max(pos, 0.0), length - 1.001)
+    lo = int(np.floor(pos))
+    frac = pos - lo
+    hi = min(lo + 1, length - 1)
+    if vertical:
+        a, b = image[lo, line], image[hi, line]
+    else:
+        a, b = image[line, lo], image[line, hi]
+    return (1.0 - frac) * np.float64(a) + frac * np.float64(b)
+
+
+@njit(cache=True, nogil=True)
+def _shift_steps(image, reference, along, d_in, ok_in, lines, vertical, scale, member_var):
+    """Gauss-Newton steps of :meth:`MemberEdges._shift`, profile by profile (see there): the
+    displacement ``d`` of each reference profile ``reference`` (pixels ``along`` its line)
+    that matches the frame ``image`` best.
+
+    Returns ``(d, var, misfit, ok)``."""
+    n, width = reference.shape
+    height_img, width_img = image.shape
+    d_out = d_in.copy()
+    var_out = np.full(n, np.nan)
+    misfit_out = np.full(n, np.nan)
+    ok_out = ok_in.copy()
+    for i in range(n):
+        line = lines[i]
+        vert = vertical[i]
+        length = height_img if vert else width_img
+        d = d_in[i]
+        ok = ok_in[i]
+        var = np.nan
+        misfit = np.nan
+        for _ in range(N_STEPS):
+            h = 0.0
+            g = 0.0
+            rr = 0.0
+            for k in range(width):
+                pos = along[i, k] + d
+                value = _lerp_line(image, line, vert, pos, length) / scale
+                slope = 0.5 * (_lerp_line(image, line, vert, pos + 0.5, length)
+                               - _lerp_line(image, line, vert, pos - 0.5, length)) / scale * 2.0
+                r = value - reference[i, k]
+                h += slope * slope
+                g += slope * r
+                rr += r * r
+            good = h > 1e-9
+            step = -g / h if good else 0.0
+            d += min(max(step, -0.5), 0.5)
+            resid = rr / width
+            var = (resid + member_var) / h if good else np.nan
+            misfit = resid
+            ok = ok and good
+        d_out[i] = d
+        var_out[i] = var
+        misfit_out[i] = misfit
+        ok_out[i] = ok
+    return d_out, var_out, misfit_out, ok_out
 
 
 @njit(cache=True, nogil=True)
@@ -600,7 +704,6 @@ class MemberEdges:
         whatever the outline's blur and the member's shading; a textured background, which
         does not move, biases it (the two-layer models are then the ones that agree).
         """
-        n = len(self.line)
         ref_edge = self.ref.edge
         finite = np.isfinite(guess) & np.isfinite(ref_edge)
         d = np.where(finite, guess - ref_edge, 0.0)
@@ -612,37 +715,12 @@ class MemberEdges:
         ok = finite & np.all((along >= 1) & (along < length - 2), axis=1)
         along = np.clip(along, 0, length - 1)
         line = np.broadcast_to(self.line[:, None], along.shape)
-
-        def sample(img: np.ndarray, pos: np.ndarray) -> np.ndarray:
-            pos = np.clip(pos, 0, length - 1.001)
-            lo = np.floor(pos).astype(np.intp)
-            frac = pos - lo
-            hi = np.minimum(lo + 1, length - 1)
-            r0 = np.where(self.vertical[:, None], lo, line)
-            c0 = np.where(self.vertical[:, None], line, lo)
-            r1 = np.where(self.vertical[:, None], hi, line)
-            c1 = np.where(self.vertical[:, None], line, hi)
-            return (1 - frac) * img[r0, c0].astype(np.float64) + frac * img[r1, c1].astype(np.float64)
-
         reference = self._ref_image[np.where(self.vertical[:, None], along, line),
                                     np.where(self.vertical[:, None], line, along)].astype(np.float64)
         scale = 1.0 if gain is None else gain
-        cur = image  # sampled as float64 (not copied whole: a 4K frame is 66 MB of float64)
-        var = np.full(n, np.nan)
-        misfit = np.full(n, np.nan)
-        for _ in range(N_STEPS):
-            pos = along + d[:, None]
-            value = sample(cur, pos) / scale
-            slope = 0.5 * (sample(cur, pos + 0.5) - sample(cur, pos - 0.5)) / scale * 2.0
-            r = value - reference
-            h = np.sum(slope * slope, axis=1)
-            good = h > 1e-9
-            step = np.where(good, -np.sum(slope * r, axis=1) / np.where(good, h, 1.0), 0.0)
-            d = d + np.clip(step, -0.5, 0.5)
-            resid = np.mean(r * r, axis=1)
-            var = np.where(good, (resid + self.member_var) / np.where(good, h, 1.0), np.nan)
-            misfit = resid
-            ok &= good
+        # The frame is sampled in place (not copied whole: a 4K frame is 66 MB of float64).
+        d, var, misfit, ok = _shift_steps(image, reference, along, d, ok, self.line, self.vertical,
+                                          float(scale), float(self.member_var))
         edge = np.where(ok, ref_edge + d, np.nan)
         return _Outline(edge, var, self.ref.contrast.copy(), misfit)
 
