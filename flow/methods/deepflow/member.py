@@ -380,6 +380,27 @@ def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, co
 
 
 @njit(cache=True, nogil=True)
+def _gather_strips(image, centre, lines, sides, vertical):
+    """:meth:`MemberEdges._strips`: each profile's ``2 HALF + 1`` pixels along its line from
+    ``centre - HALF`` (member side) outwards, as float64, clamped to the image, and whether
+    all of them lie inside it."""
+    n = centre.shape[0]
+    height, width = image.shape
+    values = np.empty((n, 2 * HALF + 1))
+    inside = np.ones(n, np.bool_)
+    for i in range(n):
+        vert = vertical[i]
+        line = lines[i]
+        for k in range(2 * HALF + 1):
+            along = centre[i] + sides[i] * (k - HALF)
+            r, c = (along, line) if vert else (line, along)
+            if r < 0 or r >= height or c < 0 or c >= width:
+                inside[i] = False
+            values[i, k] = np.float64(image[min(max(r, 0), height - 1), min(max(c, 0), width - 1)])
+    return values, inside
+
+
+@njit(cache=True, nogil=True)
 def _lerp_line(image, line, vertical, pos, length):
     """``image`` along one profile's line at position ``pos`` (linear interpolation, clamped
     to the line's ``length`` as :meth:`MemberEdges._shift` samples it), as float64."""
@@ -671,10 +692,7 @@ class MemberEdges:
         Returns ``(values (N, 2 HALF + 1), inside)``; strip index ``HALF`` is the pixel
         ``centre`` (integer, along the line).
         """
-        rows, cols = self._strip_pixels(centre)
-        height, width = image.shape
-        inside = np.all((rows >= 0) & (rows < height) & (cols >= 0) & (cols < width), axis=1)
-        return image[np.clip(rows, 0, height - 1), np.clip(cols, 0, width - 1)].astype(np.float64), inside
+        return _gather_strips(image, np.asarray(centre, np.intp), self.line, self.side, self.vertical)
 
     def _moved_strips(self, image: np.ndarray, centre: np.ndarray, motion: np.ndarray) -> np.ndarray:
         """:meth:`_strips` of ``image`` as it shows after moving by ``motion`` (u, v) px: each
