@@ -27,7 +27,7 @@ from _lowtex_clip import encode, make_clip  # noqa: E402
 
 FPS = 60.0
 FRAMES = 48
-JUMP = (0.30, 0.45, 9.0)  # frames 18-26: 9 px further, inside the second chain
+JUMP = (0.30, 0.45, 9.0)  # frames 18-26: 9 px further, inside the first chain (0-31)
 OCCLUDED_S = (0.58, 0.63)  # frames 35-37
 
 
@@ -86,8 +86,9 @@ def test_chains_give_one_run_s_numbers_in_parts_and_with_jobs(scene, whole, tmp_
     two = _track(scene, tmp_path / "two.csv", "--mm-per-px", "0.5", "--jobs", "2")
     assert np.array_equal(_numbers(whole), _numbers(two), equal_nan=True)
     parts = [tmp_path / f"{k}.npz" for k in range(3)]
-    # Both cuts fall inside a chain: a part first solves its chain's earlier frames.
-    for part, frames in zip(parts, ["0:7", "7:23", "23:"], strict=True):
+    # Both cuts fall inside a chain (the first and the second): a part first solves its chain's
+    # earlier frames.
+    for part, frames in zip(parts, ["0:7", "7:40", "40:"], strict=True):
         assert 0 < int(frames.split(":")[0] or 0) % CHAIN_LENGTH or frames.startswith("0:")
         assert main(["track", str(scene["video"]), "--mask", str(scene["mask"]), "--no-progress",
                      "--frames", frames, "--raw-tracks", str(part)]) == 0

@@ -140,7 +140,9 @@ def test_a_known_background_is_taken_where_the_camera_moved_it():
 def test_fine_fit_stopped_at_convergence_reads_what_every_step_reads(blur, monkeypatch):
     # The compiled fine fit stops once a step is below CONVERGED_PX (where the pixels it uses
     # stay the same); the same steps run to the end (the kernel's Python, never stopping) must
-    # read the same outlines, also on a sharp outline where a step lands on a pixel's boundary.
+    # read the same outlines (a profile whose converged step crosses a pixel's boundary, which
+    # _same_pixels keeps stepping, is not constructed here: real clips gave one, noise-free and
+    # noisy synthetic edges at half pixels did not).
     from flow.methods.deepflow import member
 
     rng = np.random.default_rng(3)
@@ -158,5 +160,6 @@ def test_fine_fit_stopped_at_convergence_reads_what_every_step_reads(blur, monke
     np.testing.assert_array_equal(stopped[4], every[4])
     ok = stopped[4]
     assert ok.sum() > n // 2
-    for got, want in zip(stopped[:4], every[:4], strict=True):
+    np.testing.assert_allclose(stopped[0][ok], every[0][ok], rtol=0, atol=1e-7)  # the outline, px
+    for got, want in zip(stopped[1:4], every[1:4], strict=True):
         np.testing.assert_allclose(got[ok], want[ok], rtol=1e-5, atol=1e-6)

@@ -111,12 +111,13 @@ KNOWN_MARGIN = 2.0
 KNOWN_STATIC = 4.0
 # Half length of the profile a frame is matched to the reference over, whole.
 SHIFT_HALF = 5
-# Gauss-Newton steps of one outline fit.
+# Gauss-Newton steps of one outline fit (at most: the fine fit stops at convergence, see CONVERGED_PX).
 N_STEPS = 8
 # Rounds of each blur model's outline fit: the first from the coarse outlines, the next from the
-# outlines the fitted motion predicts (2 since 2026-12-05, 3 before: a third round read no
-# better on any of the 16 bench clips, g9-large-motion 0.157 -> 0.124 px RMSE with two,
-# compressed 0.191 -> 0.187, and took a third of the fit's time).
+# outlines the fitted motion predicts (2 since 2026-12-05, 3 before). Dropping the third round
+# made no bench clip read worse and some better (g9-large-motion 0.157 -> 0.124 px RMSE,
+# compressed 0.191 -> 0.187) and saved a third of the fit's time; a synthetic faint bar reads
+# about 0.005 px shorter across with two (tests/unit/test_deepflow_models.py).
 OUTLINE_ROUNDS = 2
 # A Gauss-Newton step below this (px; and relative, of the member's grey) ends the fine fit's steps.
 CONVERGED_PX = 1e-7
@@ -355,6 +356,7 @@ def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, co
             det = h11 * h22 - h12 * h12
             good = det > 1e-12 * max(h11 * h22, 1e-30)
             member = m
+            before = e
             de = dm = 0.0
             if good:
                 de = min(max((h22 * g1 - h12 * g2) / det, -0.5), 0.5)
@@ -369,8 +371,8 @@ def _fine_steps(values, e_in, ok_in, vertical, row_coef, col_coef, row_error, co
             contrast = member - wall[min(max(near - start, 0), width - 1)]
             ok = ok and good
             if (good and abs(de) < CONVERGED_PX and abs(dm) < CONVERGED_PX * max(abs(m), 1.0)
-                    and _same_pixels(e - de, e, reach, sharp)):
-                break  # converged: the steps left would repeat this one
+                    and _same_pixels(before, e, reach, sharp) and _same_pixels(e, e + de, reach, sharp)):
+                break  # converged: the steps left would repeat this one (on these pixels)
         e_out[i] = e
         var_out[i] = var_e
         misfit_out[i] = misfit
@@ -452,6 +454,9 @@ def _shift_steps(image, reference, along, d_in, ok_in, lines, vertical, scale, m
             good = h > 1e-9
             step = -g / h if good else 0.0
             d += min(max(step, -0.5), 0.5)
+            if d != d:  # a NaN displacement would index far outside the image (no bounds check)
+                ok = False
+                break
             resid = rr / width
             var = (resid + member_var) / h if good else np.nan
             misfit = resid
