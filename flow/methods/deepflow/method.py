@@ -17,6 +17,7 @@ import dataclasses
 import time
 from typing import Any
 
+import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -30,6 +31,7 @@ from flow.methods.deepflow.deepmatching import (
     response_bytes,
     search_radius,
 )
+from flow.methods.deepflow.hidden import SceneCheck
 from flow.methods.deepflow.member import MemberEdges, MemberFit, context_px
 from flow.methods.deepflow.regionfit import RegionFit, RegionMotion, affine_departure
 from flow.methods.deepflow.variational import VariationalParams, Workspace, refine
@@ -77,6 +79,9 @@ def _resolve(preset: str, overrides: dict[str, Any]) -> dict[str, Any]:
 # px at 4K) a 500x300 px member took 23 GB and 100 s a frame. The chain's own frames only:
 # what earlier chains saw would make a frame's numbers depend on --jobs and --frames.
 BASE_REACH_PX = 32.0
+# A frame that shows nothing of the scene (flow.methods.deepflow.hidden) is solved at this
+# fraction of the resolution (see DeepFlow._glimpse).
+GLIMPSE_SCALE = 4
 MEMBER_CONTEXT_PX = context_px()
 WIDEN_SHARE = 0.5
 MAX_REACH_PX = 256.0
@@ -802,7 +807,7 @@ class DeepFlow(DenseMethod):
         # regions' readings by model and why each full measurement chose its model: the driver
         # sums every instance's counts into the sidecar's timings.
         # (``reach_widened``: dense solves done again with a longer reach, see WIDEN_SHARE.)
-        self.counts = dict.fromkeys(("full_frames", "warm_frames", "outline_readings", "affine_readings",
+        self.counts = dict.fromkeys(("full_frames", "warm_frames", "hidden_frames", "outline_readings", "affine_readings",
                                      "dense_readings", "background_texture_readings", "along_texture", "reach_widened",
                                      "codec_floor_s",
                                      "codec_floor_x_px", "codec_floor_y_px",
@@ -818,6 +823,7 @@ class DeepFlow(DenseMethod):
         self._regions: list[_Region] = []  # one per region of the mask (see bind)
         self._background: RegionFit | None = None  # the background points' texture (see bind)
         self._read_rows = self._read_cols = np.zeros(0, np.intp)  # and all those points
+        self._scene: SceneCheck | None = None  # tells the frames that show nothing (see bind)
         super().__init__(
             preset=preset, member=self._member_on, texture=self._texture_on, crop=crop, warm=warm,
             bias_correction=bias_correction, codec_crf=codec_crf,
@@ -835,6 +841,7 @@ class DeepFlow(DenseMethod):
         # background points, whose flow only the dense solve gives) frames stand alone.
         self.chain_length = 0
         self._motion_px = None
+        self._scene = None
         mask = np.asarray(mask)
         self._poi_rows, self._poi_cols = (np.nonzero(mask) if self._crop_on and mask.shape == reference.shape
                                           else (np.zeros(0, np.intp),) * 2)
@@ -853,6 +860,7 @@ class DeepFlow(DenseMethod):
             self._regions.append(_Region.of(reference, region, int(label), member=self._member_on,
                                             texture=self._texture_on, bias_correction=self._bias_on,
                                             codec_crf=self._codec_crf))
+        self._scene = SceneCheck(reference, self._window)
         if self._warm_on and read is None:
             self.chain_length = CHAIN_LENGTH
 
@@ -930,6 +938,12 @@ class DeepFlow(DenseMethod):
             if self._warm_flow is None or self._warm_flow.shape[:2] != current.shape:
                 self._warm_flow = np.full(current.shape + (2,), np.nan, np.float32)
             flow = self._warm_flow
+        elif (regions and self._scene is not None and all(t is None for t in tracked)
+              and self._scene.hidden(current)):
+            # Nothing of the scene in view (see flow.methods.deepflow.hidden): the dense flow
+            # at a quarter of the resolution, kept (and flagged downstream) like any reading.
+            self.counts["hidden_frames"] += 1
+            return self._glimpse(reference, current)
         else:
             self.counts["full_frames"] += 1
             flow = self._dense_reaching(reference, current)
@@ -949,6 +963,26 @@ class DeepFlow(DenseMethod):
                 flow[region.rows, region.cols, 1] = v
         if self._chaining:
             self._motion_px = _poi_motion(flow, self._poi_rows, self._poi_cols)
+        return flow
+
+    def _glimpse(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
+        """The dense flow of a frame that shows nothing of the scene (an occluder's, see
+        :mod:`flow.methods.deepflow.hidden`), solved in the base window at 1/:data:`GLIMPSE_SCALE`
+        of the resolution (a sixteenth of the cost) and without the regions' refinements: a
+        reading of what is in view all the same, which the driver flags like any other (its
+        photometric mismatch against the reference), and which a frame misjudged hidden reads
+        to within about a pixel."""
+        window = self._window if self._window is not None else (slice(None), slice(None))
+        ref, cur = reference[window], current[window]
+        height, width = ref.shape
+        size = (max(1, width // GLIMPSE_SCALE), max(1, height // GLIMPSE_SCALE))
+        small_ref = cv2.resize(ref, size, interpolation=cv2.INTER_AREA)
+        small_cur = cv2.resize(cur, size, interpolation=cv2.INTER_AREA)
+        self.last_reach_px = BASE_REACH_PX / GLIMPSE_SCALE
+        small = self._solve(small_ref, small_cur, whole_shape=small_ref.shape)
+        flow = np.full(reference.shape + (2,), np.nan, np.float32)
+        flow[window] = cv2.resize(small, (width, height), interpolation=cv2.INTER_LINEAR) * np.float32(
+            [width / size[0], height / size[1]])
         return flow
 
     def _read_background(self, current: np.ndarray, flow: np.ndarray) -> np.ndarray | None:
@@ -1120,8 +1154,6 @@ def _warm_up_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     textured wall (so the outline and the dense flow are fitted; the texture fit, too faint to
     be tried here, is scipy's and has nothing to compile), its frame with the bar moved by
     0.6 px, and the bar's mask."""
-    import cv2
-
     rng = np.random.default_rng(0)
     height, width = 96, 128
     wall = cv2.GaussianBlur(rng.uniform(60, 160, (height, 4 * width)).astype(np.float32), (0, 0), 3.0)

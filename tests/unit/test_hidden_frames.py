@@ -1,0 +1,91 @@
+"""Frames that show nothing of the scene (flow.methods.deepflow.hidden) and what the default
+reads there: a sheet over the whole view, a lens cap, and the visible frames that must not be
+taken for them (moved, darkened to a sixth, defocused, half covered)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from flow.methods.deepflow.hidden import SceneCheck
+from flow.methods.deepflow.method import DeepFlow
+
+sys_rng = np.random.default_rng(5)
+
+
+def _scene(height: int = 160, width: int = 240) -> np.ndarray:
+    """A textured wall with a faint bar across it (the bench's kind of scene), float32 grey."""
+    speckle = cv2.GaussianBlur(sys_rng.standard_normal((height, width)).astype(np.float32), (0, 0), 2.5)
+    wall = 110 + 35 * speckle / speckle.std()
+    wall[60:100, :] = 150 + 2.0 * cv2.GaussianBlur(
+        sys_rng.standard_normal((40, width)).astype(np.float32), (0, 0), 2.0)
+    return wall
+
+
+REFERENCE = _scene()
+
+
+def _noisy(image: np.ndarray, sigma: float = 1.2, seed: int = 0) -> np.ndarray:
+    noise = np.random.default_rng(seed).normal(0, sigma, image.shape).astype(np.float32)
+    return np.clip(image + noise, 0, 255).astype(np.float32)
+
+
+def _shifted(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    matrix = np.float32([[1, 0, dx], [0, 1, dy]])
+    return cv2.warpAffine(image, matrix, image.shape[::-1], borderMode=cv2.BORDER_REFLECT)
+
+
+def _sheet(seed: int = 1) -> np.ndarray:
+    return _noisy(np.full(REFERENCE.shape, 234.0, np.float32), sigma=3.0, seed=seed)
+
+
+@pytest.mark.parametrize("name, frame", [
+    ("the reference itself, noisy", _noisy(REFERENCE)),
+    ("moved 20 px", _noisy(_shifted(REFERENCE, 20.0, -6.0))),
+    ("darkened to a sixth", _noisy(REFERENCE / 6.0)),
+    ("defocused", _noisy(cv2.GaussianBlur(REFERENCE, (0, 0), 4.0))),
+    ("half covered by the sheet", np.where(np.arange(240)[None, :] < 120, _sheet(), _noisy(REFERENCE))),
+])
+def test_a_frame_that_shows_the_scene_is_not_hidden(name, frame) -> None:
+    assert not SceneCheck(REFERENCE).hidden(frame.astype(np.float32)), name
+
+
+@pytest.mark.parametrize("name, frame", [
+    ("a white sheet over the view", _sheet()),
+    ("a lens cap (one grey level)", np.zeros(REFERENCE.shape, np.float32)),
+    ("a dark frame with sensor noise", _noisy(np.full(REFERENCE.shape, 8.0, np.float32), sigma=1.0)),
+])
+def test_a_frame_that_shows_nothing_of_the_scene_is_hidden(name, frame) -> None:
+    assert SceneCheck(REFERENCE).hidden(frame), name
+
+
+def test_the_check_reads_only_its_window() -> None:
+    covered = _noisy(REFERENCE)
+    covered[:, :120] = _sheet()[:, :120]
+    window = (slice(0, 160), slice(0, 120))
+    assert SceneCheck(REFERENCE, window).hidden(covered)
+    assert not SceneCheck(REFERENCE, (slice(0, 160), slice(120, 240))).hidden(covered)
+
+
+def test_the_default_reads_a_hidden_frame_coarsely_and_keeps_the_reading() -> None:
+    """A hidden frame gets no full measurement (no refinement, a quarter-resolution dense
+    flow) but a finite reading at the POIs, which the driver then flags; the frames before and
+    after it are measured as without it."""
+    reference = REFERENCE.astype(np.uint8)
+    moved = _noisy(_shifted(REFERENCE, 0.3, 1.5), seed=3).astype(np.uint8)
+    sheet = _sheet().astype(np.uint8)
+    mask = np.zeros(reference.shape, bool)
+    mask[62:98, 60:180] = True
+    method = DeepFlow(warm=False)
+    method.bind(reference, mask)
+    before = method.calc(reference, moved)
+    hidden = method.calc(reference, sheet)
+    after = method.calc(reference, moved)
+    assert method.counts["hidden_frames"] == 1 and method.counts["full_frames"] == 2
+    assert np.isfinite(hidden[mask]).all(), "a hidden frame keeps a reading (flagged downstream)"
+    assert np.abs(hidden[mask]).max() < 2.0, "the sheet stands still: no wild reading"
+    assert np.array_equal(before, after, equal_nan=True)
+    alone = DeepFlow(warm=False)
+    alone.bind(reference, mask)
+    assert np.array_equal(alone.calc(reference, moved), after, equal_nan=True)
