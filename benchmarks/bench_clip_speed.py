@@ -8,7 +8,8 @@ Each method runs `refflow track CLIP --mask MASK --mm-per-px 1 --jobs J` in its 
 one after the other; the table gives frames per second of the frame loop (the sidecar's
 `frames_s`), the ratio of each method's time to OpenCV DeepFlow's, the process's peak
 memory, the RMSE against the clip's truth (so that speed is never bought with accuracy
-unseen) and, for `deepflow`, how many frames it measured in full.
+unseen) and, for `deepflow`, how many frames it measured in full (and how many it only glimpsed,
+showing nothing of the scene: see `flow.methods.deepflow.hidden`).
 
 Clips: the independent bench clips in ``../shared/bench/clips`` (480x320; lowtex-wide,
 jump and occlusion by default: the warm start's easy case and its two fall-backs), the
@@ -123,7 +124,7 @@ def run(clip: dict, method: str, jobs: int, max_frames: int | None, out: Path,
     rmse = float(np.sqrt(np.mean((measured[use] - true[use]) ** 2))) if use.any() else float("nan")
     return {"frames": len(rows), "frames_s": timings["frames_s"], "fps": timings["frames_per_s"],
             "peak_mb": peak, "rmse_px": rmse, "measured": float(use.sum() / max((~skip).sum(), 1)),
-            "full_frames": timings.get("full_frames")}
+            "full_frames": timings.get("full_frames"), "hidden_frames": timings.get("hidden_frames")}
 
 
 def table(results: list[tuple[dict, dict]], jobs: int) -> str:
@@ -139,6 +140,8 @@ def table(results: list[tuple[dict, dict]], jobs: int) -> str:
                 continue
             ratio = f"{r['frames_s'] / base:.2f}x" if base else "-"
             full = "-" if r["full_frames"] is None else f"{int(r['full_frames'])}"
+            if r.get("hidden_frames"):
+                full += f" (+{int(r['hidden_frames'])} showing nothing, glimpsed)"
             lines.append(f"| {clip['name']} | {method} | {r['frames']} | {r['fps']:.2f} | {ratio} | "
                          f"{r['peak_mb']:.0f} | {r['rmse_px']:.3f} | {r['measured']:.2f} | {full} |")
     return "\n".join(lines)

@@ -929,6 +929,12 @@ class DeepFlow(DenseMethod):
         check_pair(reference, current)
         regions = self._regions if current.shape == self._bound_shape else []
         self.last_sigmas_px = {}
+        if regions and self._scene is not None and self._scene.hidden(current):
+            # Nothing of the scene in view (see flow.methods.deepflow.hidden): the dense flow
+            # at a quarter of the resolution, kept (and flagged downstream) like any reading;
+            # the chains go on from the frames before it.
+            self.counts["hidden_frames"] += 1
+            return self._glimpse(reference, current)
         # Each region on its own: tracked from its previous frames where it may be, measured
         # in full otherwise; the dense flow is solved when any region needs it.
         tracked = [self._track(reference, current, r) if self._chaining and r.model is not None else None
@@ -938,12 +944,6 @@ class DeepFlow(DenseMethod):
             if self._warm_flow is None or self._warm_flow.shape[:2] != current.shape:
                 self._warm_flow = np.full(current.shape + (2,), np.nan, np.float32)
             flow = self._warm_flow
-        elif (regions and self._scene is not None and all(t is None for t in tracked)
-              and self._scene.hidden(current)):
-            # Nothing of the scene in view (see flow.methods.deepflow.hidden): the dense flow
-            # at a quarter of the resolution, kept (and flagged downstream) like any reading.
-            self.counts["hidden_frames"] += 1
-            return self._glimpse(reference, current)
         else:
             self.counts["full_frames"] += 1
             flow = self._dense_reaching(reference, current)
