@@ -139,9 +139,16 @@ def _write_poi_tracks(path: Path, tracks: Any, results: list[tuple[int, Any]], r
         **({"region": tracks.region} if multi else {})}, compress=True)
 
 
+def _hidden(result: Any) -> int | None:
+    """Frames in which the method saw nothing of the scene (flagged; None: it does not tell)."""
+    hidden = result.tracks.hidden
+    return None if hidden is None else int(np.sum(hidden))
+
+
 def _quality(result: Any) -> dict[str, Any]:
     n_valid = int(result.valid.sum())
     return {"frames_valid": n_valid, "frames_invalid": int(len(result.valid) - n_valid),
+            "frames_hidden": _hidden(result),
             "residual_threshold": finite_or_none(result.residual_threshold),
             "consistency_band_px": finite_or_none(result.consistency_band_px),
             "typical_sigma_px": finite_or_none(result.typical_sigma_px),
@@ -168,6 +175,7 @@ def sidecar(run: RunInfo, filtering: FilterOptions, notes: list[str], results: l
                    "mcr_threshold": filtering.mcr_threshold,
                    "max_typical_sigma_px": filtering.max_typical_sigma_px},
         "quality": ({"frames_valid": int(every.sum()), "frames_invalid": int(len(every) - every.sum()),
+                     "frames_hidden": _hidden(first),
                      "counted": "frames valid in every region (each region's own: see regions)",
                      "unresolved_regions": [int(label) for label, result in results if result.unresolved]}
                     if multi else _quality(first)),

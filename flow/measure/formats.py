@@ -54,6 +54,8 @@ def save_raw_tracks(path: str | Path, tracks: Tracks, meta: dict[str, Any]) -> N
         camera.update({"sigma_dx_px": tracks.sigma_dx, "sigma_dy_px": tracks.sigma_dy})
     if tracks.region is not None:
         camera["region"] = tracks.region
+    if tracks.hidden is not None:
+        camera["hidden"] = tracks.hidden
     write_npz(path, {"format": np.array(RAW_FORMAT), "meta": np.array(json.dumps(meta, sort_keys=True)),
                      "frame": tracks.frame, "time_s": tracks.time_s, "residual": tracks.residual,
                      "x_px": tracks.x_px, "y_px": tracks.y_px, "offset_dx_px": tracks.offset_dx,
@@ -149,7 +151,8 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
     holder = next((p for p in parts if reference_frame in p.small["frame"]), parts[0])
     per_frame = ("frame", "time_s", "residual") + (("camera_dx_px", "camera_dy_px")
                                                    if "camera_dx_px" in first.small else ()) \
-        + (("sigma_dx_px", "sigma_dy_px") if all("sigma_dx_px" in p.small for p in parts) else ())
+        + (("sigma_dx_px", "sigma_dy_px") if all("sigma_dx_px" in p.small for p in parts) else ()) \
+        + (("hidden",) if all("hidden" in p.small for p in parts) else ())
     concat = {key: np.concatenate([p.small[key] for p in parts]) for key in per_frame}
     additive = [key for key in first.meta.get("timings", {}) if key not in NOT_ADDITIVE_TIMINGS]
     timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts)
@@ -164,5 +167,6 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
                     reference_digest=first.meta["identity"]["reference_digest"],
                     camera_dx=concat.get("camera_dx_px"), camera_dy=concat.get("camera_dy_px"),
                     sigma_dx=concat.get("sigma_dx_px"), sigma_dy=concat.get("sigma_dy_px"),
-                    region=first.small.get("region"))
+                    region=first.small.get("region"),
+                    hidden=None if "hidden" not in concat else concat["hidden"].astype(bool))
     return tracks, [p.meta for p in parts]

@@ -178,7 +178,8 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
     """Quality flags, eq. (10)-(12) filtering and averaging of a run's tracks.
 
     A frame is invalid when its photometric residual is far above its baseline
-    (:func:`flag_invalid`), when no POI was measured, or, with
+    (:func:`flag_invalid`), when no POI was measured, when the method saw nothing of the
+    scene in it (``tracks.hidden``), or, with
     ``check_coherence``, when the POIs that survive the filters scatter far more
     than usual (:func:`flag_incoherent`). The coherence check must only look at
     the surviving POIs (background POIs in the mask stay put while the
@@ -200,6 +201,8 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
                                           floor=residual_floor)
     measured = _per_frame(tracks, None, lambda bx, by: np.isfinite(bx).any(axis=1)) > 0
     base = photometric & measured
+    if tracks.hidden is not None:
+        base &= ~np.asarray(tracks.hidden, bool)
     offset = (tracks.offset_dx, tracks.offset_dy)
 
     def run_filters(valid: np.ndarray) -> FilterResult:

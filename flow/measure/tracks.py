@@ -78,6 +78,10 @@ class Tracks:
     # per-frame values above (residual, camera, sigma) are (F, R), one column per label in
     # ascending order, each over (or at the centroid of) that region's POIs.
     region: np.ndarray | None = None  # (P,) int
+    # Frames in which the method saw nothing of the scene (a sheet over the whole view, the
+    # light gone: see flow.methods.deepflow.hidden); their readings are kept and flagged.
+    # None: the method does not tell.
+    hidden: np.ndarray | None = None  # (F,) bool
 
     def labels(self) -> list[int]:
         """The regions' labels, ascending ([1] for a run of one region)."""

@@ -98,6 +98,9 @@ def test_chains_give_one_run_s_numbers_in_parts_and_with_jobs(scene, whole, tmp_
     merged = tmp_path / "merged.csv"
     assert main(["merge", *map(str, parts), "--mm-per-px", "0.5", "--out", str(merged)]) == 0
     assert np.array_equal(_numbers(whole), _numbers(merged), equal_nan=True)
+    # The frames that showed nothing (the sheet's) travel through the parts too.
+    hidden = [json.loads(p.with_suffix(".json").read_text())["quality"]["frames_hidden"] for p in (whole, merged)]
+    assert hidden == [scene["clip"].occluded.sum()] * 2
 
 
 def test_tracked_frames_read_like_frames_measured_in_full(scene, whole, tmp_path) -> None:

@@ -89,3 +89,47 @@ def test_the_default_reads_a_hidden_frame_coarsely_and_keeps_the_reading() -> No
     alone = DeepFlow(warm=False)
     alone.bind(reference, mask)
     assert np.array_equal(alone.calc(reference, moved), after, equal_nan=True)
+
+
+def test_a_hidden_frame_of_a_narrow_window_is_glimpsed_at_a_finer_scale() -> None:
+    """A window too narrow for a quarter-resolution matching (a 40-row frame: a Phantom
+    recording's strip) is glimpsed at full resolution instead of failing."""
+    reference = np.ascontiguousarray(REFERENCE[60:100]).astype(np.uint8)
+    mask = np.zeros(reference.shape, bool)
+    mask[8:32, 60:180] = True
+    method = DeepFlow(warm=False)
+    method.bind(reference, mask)
+    flow = method.calc(reference, np.full(reference.shape, 234, np.uint8))
+    assert method.last_hidden and method.counts["hidden_frames"] == 1
+    assert np.isfinite(flow[mask]).all()
+
+
+def test_hidden_frames_are_flagged_where_the_sheet_looks_like_the_member(tmp_path) -> None:
+    """A sheet as grey as the member's paint leaves the POIs' photometric mismatch small (the
+    workbench's A4 sheet over its grey beam): the frames are flagged all the same, their
+    readings kept, and the sidecar counts them."""
+    import csv
+    import json
+    import sys
+    from pathlib import Path
+
+    from flow.cli import main
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from _lowtex_clip import encode, make_clip
+
+    clip = make_clip(seed=4, frames=30, fps=60.0, height=120, width=160, bar_width=28, amplitude=2.0,
+                     member_grey=233.0, occlude_s=(0.2, 0.3))
+    video = encode(clip, tmp_path / "bar.mp4", crf=12)
+    mask = tmp_path / "mask.png"
+    cv2.imwrite(str(mask), clip.mask.astype(np.uint8) * 255)
+    out = tmp_path / "bar.csv"
+    assert main(["track", str(video), "--mask", str(mask), "--no-progress", "--out", str(out)]) == 0
+    with out.open() as handle:
+        rows = list(csv.DictReader(handle))
+    valid = np.array([r["valid"] == "1" for r in rows])
+    dx = np.array([float(r["dx_px"]) for r in rows])
+    assert not valid[clip.occluded].any() and valid[~clip.occluded].all()
+    assert np.isfinite(dx).all(), "a flag qualifies a reading, never deletes it"
+    quality = json.loads(out.with_suffix(".json").read_text())["quality"]
+    assert quality["frames_hidden"] == clip.occluded.sum() == 6

@@ -82,6 +82,7 @@ BASE_REACH_PX = 32.0
 # A frame that shows nothing of the scene (flow.methods.deepflow.hidden) is solved at this
 # fraction of the resolution (see DeepFlow._glimpse).
 GLIMPSE_SCALE = 4
+GLIMPSE_MIN_PX = 32  # the glimpse's shorter side at least (else a finer scale)
 MEMBER_CONTEXT_PX = context_px()
 WIDEN_SHARE = 0.5
 MAX_REACH_PX = 256.0
@@ -824,6 +825,7 @@ class DeepFlow(DenseMethod):
         self._background: RegionFit | None = None  # the background points' texture (see bind)
         self._read_rows = self._read_cols = np.zeros(0, np.intp)  # and all those points
         self._scene: SceneCheck | None = None  # tells the frames that show nothing (see bind)
+        self.last_hidden = False  # the last frame showed nothing of the scene (the driver flags it)
         super().__init__(
             preset=preset, member=self._member_on, texture=self._texture_on, crop=crop, warm=warm,
             bias_correction=bias_correction, codec_crf=codec_crf,
@@ -929,11 +931,13 @@ class DeepFlow(DenseMethod):
         check_pair(reference, current)
         regions = self._regions if current.shape == self._bound_shape else []
         self.last_sigmas_px = {}
+        self.last_hidden = False
         if regions and self._scene is not None and self._scene.hidden(current):
             # Nothing of the scene in view (see flow.methods.deepflow.hidden): the dense flow
             # at a quarter of the resolution, kept (and flagged downstream) like any reading;
             # the chains go on from the frames before it.
             self.counts["hidden_frames"] += 1
+            self.last_hidden = True
             return self._glimpse(reference, current)
         # Each region on its own: tracked from its previous frames where it may be, measured
         # in full otherwise; the dense flow is solved when any region needs it.
@@ -977,10 +981,16 @@ class DeepFlow(DenseMethod):
         window = self._window if self._window is not None else (slice(None), slice(None))
         ref, cur = reference[window], current[window]
         height, width = ref.shape
-        size = (max(1, width // GLIMPSE_SCALE), max(1, height // GLIMPSE_SCALE))
+        scale = GLIMPSE_SCALE
+        while scale > 1 and min(height, width) < GLIMPSE_MIN_PX * scale:
+            scale //= 2  # a narrow window: a finer glimpse (the matching needs its atoms)
+        if scale == 1:
+            self.last_reach_px = BASE_REACH_PX
+            return self._dense_in(reference, current, self._window)
+        size = (width // scale, height // scale)
         small_ref = cv2.resize(ref, size, interpolation=cv2.INTER_AREA)
         small_cur = cv2.resize(cur, size, interpolation=cv2.INTER_AREA)
-        self.last_reach_px = BASE_REACH_PX / GLIMPSE_SCALE
+        self.last_reach_px = BASE_REACH_PX / scale
         small = self._solve(small_ref, small_cur, whole_shape=small_ref.shape)
         flow = np.full(reference.shape + (2,), np.nan, np.float32)
         flow[window] = cv2.resize(small, (width, height), interpolation=cv2.INTER_LINEAR) * np.float32(
