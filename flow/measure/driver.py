@@ -210,7 +210,7 @@ class _FrameResult(NamedTuple):
     camera: np.ndarray  # (R, 2) px, NaN without a background
     sigma: np.ndarray  # (R, 2) px
     field: tuple[np.ndarray, np.ndarray] | None = None  # the mask pixels' (u, v) for --field
-    hidden: bool = False  # the method saw nothing of the scene in the frame (see Tracks.hidden)
+    hidden: bool | None = None  # the method saw nothing of the scene in the frame (see Tracks.hidden)
 
 
 class _PoiReadout:
@@ -241,7 +241,8 @@ class _PoiReadout:
                           for label, group, lk in zip(labels, groups, self._lks, strict=True)], np.float64)
         cdx, cdy, camera = self._compensate(flow, dx, dy)
         field = None if self._field is None else self._field.cut(flow, cdx, cdy)
-        return _FrameResult(cdx, cdy, residual, camera, sigma, field, bool(getattr(method, "last_hidden", False)))
+        hidden = getattr(method, "last_hidden", None)  # None: the method does not tell
+        return _FrameResult(cdx, cdy, residual, camera, sigma, field, None if hidden is None else bool(hidden))
 
     def _compensate(self, flow: np.ndarray, dx: np.ndarray,
                     dy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -391,7 +392,7 @@ class _Collected:
         self.residuals: list[np.ndarray] = []
         self.cameras: list[np.ndarray] = []
         self.sigmas: list[np.ndarray] = []
-        self.hidden: list[bool] = []
+        self.hidden: list[bool | None] = []
 
     def add(self, results: _Solved, bar: tqdm) -> None:
         for index, time_s, result in results:
@@ -541,7 +542,7 @@ def _assemble(collected: _Collected, source: FrameSource, regions: _Regions, xy:
                   camera_dy=None if camera is None else _per_region(camera[..., 1], n_regions),
                   sigma_dx=_per_region(sigma[..., 0], n_regions), sigma_dy=_per_region(sigma[..., 1], n_regions),
                   region=regions.region_of if n_regions > 1 else None,
-                  hidden=np.asarray(collected.hidden, bool))
+                  hidden=None if None in collected.hidden else np.asarray(collected.hidden, bool))
 
 
 def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,

@@ -133,3 +133,8 @@ def test_hidden_frames_are_flagged_where_the_sheet_looks_like_the_member(tmp_pat
     assert np.isfinite(dx).all(), "a flag qualifies a reading, never deletes it"
     quality = json.loads(out.with_suffix(".json").read_text())["quality"]
     assert quality["frames_hidden"] == clip.occluded.sum() == 6
+    # A method that does not tell says nothing (null), not "none hidden".
+    other = tmp_path / "dis.csv"
+    assert main(["track", str(video), "--mask", str(mask), "--method", "dis", "--no-progress",
+                 "--out", str(other)]) == 0
+    assert json.loads(other.with_suffix(".json").read_text())["quality"]["frames_hidden"] is None
