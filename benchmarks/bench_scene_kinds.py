@@ -7,6 +7,8 @@ warped coordinates, as in ``tests/integration/test_scene_kinds.py``, whose helpe
 
 * ``along``: a faintly painted bar (4 grey levels) moving +-2 px along its own length: its
   outline cannot show that motion;
+* ``along-faint``: the same bar with the bench's paint (2 grey levels) moving +-1.5 px along it
+  (added 2026-12-05: the default under-reads it, see the README);
 * ``inclined``: a faint bar at 30 degrees moving along x (half of it along the bar);
 * ``cable``: a dark cable 6 px thick over a bright sky without texture, moving +-2 px across,
   a mask 5 px wide on it;
@@ -43,7 +45,7 @@ import test_scene_kinds as kinds  # noqa: E402
 from _lowtex_clip import Clip, encode  # noqa: E402
 
 HEIGHT, WIDTH, UP, FRAMES, FPS = 200, 300, 2, 60, 60.0
-KINDS = ("along", "inclined", "cable", "ibeam", "moving-bg", "zoom")
+KINDS = ("along", "along-faint", "inclined", "cable", "ibeam", "moving-bg", "zoom")
 METHODS = ("deepflow", "dis", "deepflow-dense", "deepflow-opencv", "klt")
 
 
@@ -64,14 +66,15 @@ def scene(kind: str, seed: int = 1) -> Clip:
     mask = np.zeros((HEIGHT, WIDTH), bool)
     axis, wall_motion = "x", None
     amp = 2.0 * np.sin(2 * np.pi * 1.7 * t)
-    if kind == "along":
+    if kind in ("along", "along-faint"):
         inside = np.abs(xs - 150) < 20
-        member = 150 + 4 * _texture(rng, 1.5)
+        member = 150 + (4 if kind == "along" else 2) * _texture(rng, 1.5)
         mask[20:180, 136:164] = True
         axis = "y"
+        shift = amp if kind == "along" else 0.75 * amp
 
         def motion(k, x, y):
-            return np.zeros_like(x), np.full_like(x, amp[k])
+            return np.zeros_like(x), np.full_like(x, shift[k])
     elif kind == "inclined":
         angle = np.deg2rad(30)
         inside = np.abs((xs - 150) * np.cos(angle) - (ys - 100) * np.sin(angle)) < 14
