@@ -153,6 +153,9 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
                                                    if "camera_dx_px" in first.small else ()) \
         + (("sigma_dx_px", "sigma_dy_px") if all("sigma_dx_px" in p.small for p in parts) else ()) \
         + (("hidden",) if all("hidden" in p.small for p in parts) else ())
+    if len({"hidden" in p.small for p in parts}) > 1:
+        raise InputError("the parts come from different refflow versions (some record the frames that "
+                         "showed nothing of the scene, some do not): track every part with one version")
     concat = {key: np.concatenate([p.small[key] for p in parts]) for key in per_frame}
     additive = [key for key in first.meta.get("timings", {}) if key not in NOT_ADDITIVE_TIMINGS]
     timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts)

@@ -44,6 +44,8 @@ def _sheet(seed: int = 1) -> np.ndarray:
     ("the reference itself, noisy", _noisy(REFERENCE)),
     ("moved 20 px", _noisy(_shifted(REFERENCE, 20.0, -6.0))),
     ("darkened to a sixth", _noisy(REFERENCE / 6.0)),
+    # texture gone too, so only the correlation tells: it must search the motion
+    ("darkened to a sixth and moved 30 px", _noisy(_shifted(REFERENCE, 30.0, 4.0) / 6.0)),
     ("defocused", _noisy(cv2.GaussianBlur(REFERENCE, (0, 0), 4.0))),
     ("half covered by the sheet", np.where(np.arange(240)[None, :] < 120, _sheet(), _noisy(REFERENCE))),
 ])
@@ -134,7 +136,34 @@ def test_hidden_frames_are_flagged_where_the_sheet_looks_like_the_member(tmp_pat
     quality = json.loads(out.with_suffix(".json").read_text())["quality"]
     assert quality["frames_hidden"] == clip.occluded.sum() == 6
     # A method that does not tell says nothing (null), not "none hidden".
-    other = tmp_path / "dis.csv"
-    assert main(["track", str(video), "--mask", str(mask), "--method", "dis", "--no-progress",
-                 "--out", str(other)]) == 0
-    assert json.loads(other.with_suffix(".json").read_text())["quality"]["frames_hidden"] is None
+    for method in ("dis", "deepflow-dense"):
+        other = tmp_path / f"{method}.csv"
+        assert main(["track", str(video), "--mask", str(mask), "--method", method, "--no-progress",
+                     "--out", str(other)]) == 0
+        assert json.loads(other.with_suffix(".json").read_text())["quality"]["frames_hidden"] is None
+    # Parts carry the flag; parts that do not record it (an older version) are not merged with
+    # parts that do.
+    parts = [tmp_path / "a.npz", tmp_path / "b.npz"]
+    for part, frames in zip(parts, ("0:15", "15:"), strict=True):
+        assert main(["track", str(video), "--mask", str(mask), "--no-progress", "--frames", frames,
+                     "--raw-tracks", str(part)]) == 0
+    merged = tmp_path / "merged.csv"
+    assert main(["merge", *map(str, parts), "--out", str(merged)]) == 0
+    assert json.loads(merged.with_suffix(".json").read_text())["quality"]["frames_hidden"] == 6
+    with np.load(parts[1]) as data:
+        older = {k: data[k] for k in data.files if k != "hidden"}
+    np.savez(parts[1], **older)
+    assert main(["merge", *map(str, parts), "--out", str(tmp_path / "mixed.csv")]) == 2
+    assert not (tmp_path / "mixed.csv").exists()
+
+
+def test_a_hidden_frame_is_glimpsed_at_a_scale_the_matching_can_take() -> None:
+    """A coarse matching (downscale 8) on a 150-row window: the glimpse's quarter would be too
+    small for its atoms; a finer one is taken instead of failing."""
+    reference = np.ascontiguousarray(np.vstack([REFERENCE, REFERENCE])[:150]).astype(np.uint8)
+    mask = np.zeros(reference.shape, bool)
+    mask[40:110, 60:180] = True
+    method = DeepFlow(warm=False, downscale=8)
+    method.bind(reference, mask)
+    flow = method.calc(reference, np.full(reference.shape, 234, np.uint8))
+    assert method.last_hidden and np.isfinite(flow[mask]).all()

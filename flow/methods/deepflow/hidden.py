@@ -5,7 +5,8 @@ light gone leaves a frame that holds nothing of the reference's structure: no me
 a displacement from it, and a dense flow solved on it is the occluder's noise (on the bench's
 `occlusion` clip, a white sheet over the view for 0.8 s, the dense readings there were up to
 9 px off, every one flagged invalid, and their solves half the clip's time). The default
-(:class:`flow.methods.deepflow.method.DeepFlow`) gives such a frame no reading (NaN) instead.
+(:class:`flow.methods.deepflow.method.DeepFlow`) only glimpses such a frame instead (a coarse
+dense flow, kept) and tells the driver, which flags it (``Tracks.hidden``).
 
 A frame is hidden only where both hold, each of which a visible frame can fail alone:
 
@@ -14,8 +15,9 @@ A frame is hidden only where both hold, each of which a visible frame can fail a
   reference's (a frame whose light dropped to a fifth fails this alone; the bench's visible
   frames hold 0.81-1.07 of it, the sheet 0.006);
 * the reference's structure is not found in it: the best zero-normalised correlation of the
-  reference's window (less :data:`SEARCH_PX` on each side, smoothed by :data:`MATCH_BLUR_PX`,
-  at half resolution) over shifts up to :data:`SEARCH_PX` is below :data:`MATCH_FLOOR` (a
+  reference's window (smoothed by :data:`MATCH_BLUR_PX`, at half resolution, less a border of
+  :data:`SEARCH_PX` full-resolution pixels, or a quarter of a narrower window's side) over the
+  shifts that border allows is below :data:`MATCH_FLOOR` (a
   darkened or defocused view still correlates; the bench's visible frames 0.61-1.00 where the
   motion stays within the search, the sheet at most 0.22).
 """
@@ -49,7 +51,7 @@ class SceneCheck:
 
     def __init__(self, reference: np.ndarray, window: tuple[slice, slice] | None = None) -> None:
         self._window = window if window is not None else (slice(None), slice(None))
-        ref = np.asarray(reference, np.float32)[self._window]
+        ref = np.asarray(reference[self._window], np.float32)
         self._energy = _energy(ref)
         coarse = _coarse(ref)
         h, w = coarse.shape
@@ -60,7 +62,7 @@ class SceneCheck:
         """Whether ``current`` shows neither the reference's texture nor its structure."""
         if self._template is None or not self._energy > 0:
             return False
-        cur = np.asarray(current, np.float32)[self._window]
+        cur = np.asarray(current[self._window], np.float32)
         energy = _energy(cur)
         if not energy < ENERGY_RATIO * self._energy:
             return False

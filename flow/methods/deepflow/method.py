@@ -25,6 +25,7 @@ from flow.measure.photometric import sample
 from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
 from flow.methods.deepflow.codecfloor import codec_floor
 from flow.methods.deepflow.deepmatching import (
+    ATOMIC,
     MatchParams,
     deep_matching,
     densify,
@@ -825,7 +826,8 @@ class DeepFlow(DenseMethod):
         self._background: RegionFit | None = None  # the background points' texture (see bind)
         self._read_rows = self._read_cols = np.zeros(0, np.intp)  # and all those points
         self._scene: SceneCheck | None = None  # tells the frames that show nothing (see bind)
-        self.last_hidden = False  # the last frame showed nothing of the scene (the driver flags it)
+        # The last frame showed nothing of the scene (the driver flags it); None: not checked.
+        self.last_hidden: bool | None = None
         super().__init__(
             preset=preset, member=self._member_on, texture=self._texture_on, crop=crop, warm=warm,
             bias_correction=bias_correction, codec_crf=codec_crf,
@@ -931,8 +933,9 @@ class DeepFlow(DenseMethod):
         check_pair(reference, current)
         regions = self._regions if current.shape == self._bound_shape else []
         self.last_sigmas_px = {}
-        self.last_hidden = False
-        if regions and self._scene is not None and self._scene.hidden(current):
+        # None where the frame is not checked (no region refined: deepflow-dense).
+        self.last_hidden = None if not regions or self._scene is None else False
+        if self.last_hidden is not None and self._scene.hidden(current):
             # Nothing of the scene in view (see flow.methods.deepflow.hidden): the dense flow
             # at a quarter of the resolution, kept (and flagged downstream) like any reading;
             # the chains go on from the frames before it.
@@ -973,8 +976,8 @@ class DeepFlow(DenseMethod):
         """The dense flow of a frame that shows nothing of the scene (an occluder's, see
         :mod:`flow.methods.deepflow.hidden`), solved in the base window at 1/:data:`GLIMPSE_SCALE`
         of the resolution (a sixteenth of the cost) and without the regions' refinements: a
-        reading of what is in view all the same, which the driver flags like any other (its
-        photometric mismatch against the reference). A frame misjudged hidden would read its
+        reading of what is in view all the same, kept and flagged by the driver (see
+        :attr:`last_hidden`). A frame misjudged hidden would read its
         window's coarse motion: on the bench's painted bar (visible frames glimpsed on purpose)
         0.03-1.5 px off the full measurement, the wall's texture outweighing the bar's at that
         scale (at 1/8, 1.5 ms a frame instead of 13 ms, up to 5.5 px off)."""
@@ -982,8 +985,10 @@ class DeepFlow(DenseMethod):
         ref, cur = reference[window], current[window]
         height, width = ref.shape
         scale = GLIMPSE_SCALE
-        while scale > 1 and min(height, width) < GLIMPSE_MIN_PX * scale:
-            scale //= 2  # a narrow window: a finer glimpse (the matching needs its atoms)
+        # A narrow window (or a coarse matching): a finer glimpse; the matching needs its atoms.
+        shortest = max(GLIMPSE_MIN_PX, 2 * ATOMIC * self._match.downscale if self._var.beta > 0 else 0)
+        while scale > 1 and min(height, width) < shortest * scale:
+            scale //= 2
         if scale == 1:
             self.last_reach_px = BASE_REACH_PX
             return self._dense_in(reference, current, self._window)
