@@ -305,3 +305,31 @@ def test_features_followed_on_their_own_are_never_flagged_for_precision() -> Non
     result = measure(_tracks(dx + 0.01 * rng.standard_normal(dx.shape), np.zeros_like(dx)), filter_enabled=False,
                      check_coherence=False)
     assert np.isnan(result.typical_sigma_px) and not result.unresolved and result.valid.all()
+
+
+def test_frames_the_method_saw_nothing_in_are_flagged_and_do_not_set_the_residual_threshold() -> None:
+    """A lens cap over most of a clip: its frames are flagged as hidden (their readings kept),
+    and their large residuals do not lift the threshold the visible frames are held to, so a
+    visible frame half blocked (residual 6 grey levels where the rest read 1.5) is still caught."""
+    from dataclasses import replace
+
+    from flow.measure.quality import measure
+
+    rng = np.random.default_rng(6)
+    frames = 60
+    motion = 0.5 * np.sin(np.arange(frames) / 4.0)
+    dx = motion[:, None] + rng.normal(0, 0.02, (frames, 80))
+    dy = rng.normal(0, 0.02, (frames, 80))
+    residual = 1.5 + 0.05 * rng.standard_normal(frames)
+    hidden = np.zeros(frames, bool)
+    hidden[10:45] = True  # the cap: a smooth, coherent glimpse of it
+    residual[hidden] = 40.0
+    residual[50] = 6.0  # a visible frame half blocked
+    tracks = replace(_tracks(dx, dy, residual), hidden=hidden)
+    result = measure(tracks)
+    assert not result.valid[hidden].any() and np.isfinite(result.filtered.dx[hidden]).all()
+    assert not result.valid[50]
+    assert result.valid[~hidden & (np.arange(frames) != 50)].all()
+    # Without the flag the cap's frames pass, and lift the threshold over the half-blocked one.
+    told = measure(replace(tracks, hidden=None))
+    assert told.valid[hidden].all() and told.valid[50]
