@@ -197,13 +197,10 @@ def measure(tracks: Tracks, *, filter_enabled: bool = True, average: str = "mean
     frame flagged (``Measurement.unresolved``): it resolves neither a sub-pixel reading nor
     its motion. The readings stay in ``filtered``: a flag qualifies a number, never deletes it.
     """
-    # Frames the method saw nothing in are flagged below; their residuals (a sheet's) must not
-    # set the threshold the other frames are held to.
-    residual = np.asarray(tracks.residual, float)
-    if tracks.hidden is not None:
-        hidden = np.asarray(tracks.hidden, bool)
-        residual = np.where(hidden.reshape((-1,) + (1,) * (residual.ndim - 1)), np.nan, residual)
-    photometric, threshold = flag_invalid(residual, k_mad=residual_k_mad, ratio=residual_ratio,
+    # (Frames the method saw nothing in still count towards the residual's threshold, as they
+    # do for every method that does not tell them: kept out, they flagged the workbench's
+    # frames after the A4 sheet longer, valid share 0.769 -> 0.752, recovery 0.37 -> 0.48 s.)
+    photometric, threshold = flag_invalid(tracks.residual, k_mad=residual_k_mad, ratio=residual_ratio,
                                           floor=residual_floor)
     measured = _per_frame(tracks, None, lambda bx, by: np.isfinite(bx).any(axis=1)) > 0
     base = photometric & measured
