@@ -20,6 +20,11 @@ A frame is hidden only where both hold, each of which a visible frame can fail a
   shifts that border allows is below :data:`MATCH_FLOOR` (a
   darkened or defocused view still correlates; the bench's visible frames 0.61-1.00 where the
   motion stays within the search, the sheet at most 0.22).
+
+What it cannot tell: a reference that itself holds something passing (a hand, a cable swinging
+through) in an otherwise plain view makes the frames without it look hidden (flagged, read
+coarsely); a frame that shows the scene's texture but not the reference's structure (a
+textured occluder) is measured in full and flagged, if at all, by its mismatch.
 """
 
 from __future__ import annotations
