@@ -149,13 +149,13 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
     reference_frame = int(first.meta["identity"]["reference_frame"])
     # The reference frame's own row gives the offset where a part holds it (as in a whole run).
     holder = next((p for p in parts if reference_frame in p.small["frame"]), parts[0])
-    per_frame = ("frame", "time_s", "residual") + (("camera_dx_px", "camera_dy_px")
-                                                   if "camera_dx_px" in first.small else ()) \
-        + (("sigma_dx_px", "sigma_dy_px") if all("sigma_dx_px" in p.small for p in parts) else ()) \
-        + (("hidden",) if all("hidden" in p.small for p in parts) else ())
     if len({"hidden" in p.small for p in parts}) > 1:
         raise InputError("the parts come from different refflow versions (some record the frames that "
                          "showed nothing of the scene, some do not): track every part with one version")
+    per_frame = ("frame", "time_s", "residual") + (("camera_dx_px", "camera_dy_px")
+                                                   if "camera_dx_px" in first.small else ()) \
+        + (("sigma_dx_px", "sigma_dy_px") if all("sigma_dx_px" in p.small for p in parts) else ()) \
+        + (("hidden",) if "hidden" in first.small else ())
     concat = {key: np.concatenate([p.small[key] for p in parts]) for key in per_frame}
     additive = [key for key in first.meta.get("timings", {}) if key not in NOT_ADDITIVE_TIMINGS]
     timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts)

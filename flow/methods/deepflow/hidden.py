@@ -73,6 +73,6 @@ class SceneCheck:
             return False
         if energy == 0.0:
             return True  # one grey level throughout (a lens cap, a saturated frame)
+        # (OpenCV's normalised correlation is finite: 0 where the frame's patch is flat.)
         found = cv2.matchTemplate(_coarse(cur), self._template, cv2.TM_CCOEFF_NORMED)
-        best = float(np.nanmax(found)) if np.isfinite(found).any() else 0.0
-        return best < MATCH_FLOOR
+        return float(found.max()) < MATCH_FLOOR
