@@ -536,22 +536,10 @@ def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray 
     moved = float(np.hypot(*motion))
     if moved < STATIC_MIN_MOTION_PX:
         return None
-    distance = BACKGROUND_OFFSET_PX + BACKGROUND_DRAG * moved
-    offset = distance * member.side
-    out_x = np.rint(np.where(member.vertical, member.px, member.px + offset))
-    out_y = np.rint(np.where(member.vertical, member.py + offset, member.py))
-    inside_frame = (out_x >= 0) & (out_x < width) & (out_y >= 0) & (out_y < height)
+    out_x, out_y, votes, hidden = _beyond(member, at_profiles, finite, moved, (height, width))
     outside = flow[np.clip(out_y, 0, height - 1).astype(np.intp),
                    np.clip(out_x, 0, width - 1).astype(np.intp)].astype(np.float64)
-    # Where the member advanced over the background by about the sample's distance or more, the
-    # reference's background there is hidden in the frame and its flow is the member's or none
-    # (a bar swinging 35 px, at 25-31 px: its leading side read as background moving, and the
-    # dense flow, 0.5-0.7 px short, was taken instead of the outline): such profiles do not vote,
-    # and a side with more than HIDDEN_SHARE of them does not (its other profiles are those the
-    # dense flow read short: the workbench's beam moving 8-9 px, 0.6-0.8 of its motion).
-    advance = member.side * np.where(member.vertical, at_profiles[:, 1], at_profiles[:, 0])
-    hidden = finite & (advance + HIDDEN_MARGIN_PX >= distance)
-    votes = finite & ~hidden & inside_frame & np.all(np.isfinite(outside), axis=1)
+    votes &= np.all(np.isfinite(outside), axis=1)
     tolerance = STATIC_RATIO * moved + STATIC_SLACK_PX
     verdicts = []
     for side in (-1, 1):
@@ -574,6 +562,60 @@ def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray 
                                           beyond, region.gain(current))
         verdicts.append(verdict)
     return all(verdicts) if verdicts else None
+
+
+def _beyond(member: MemberEdges, at_profiles: np.ndarray, finite: np.ndarray, moved: float,
+            shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The background samples beyond a member's outline profiles whose motion is ``at_profiles``
+    (``finite`` where known; ``moved`` px their median's size): their columns and rows (at
+    BACKGROUND_OFFSET_PX plus BACKGROUND_DRAG times the motion), which may vote (in the frame,
+    not hidden), and which are hidden by the member's advance.
+
+    Where the member advanced over the background by about the sample's distance or more, the
+    reference's background there is hidden in the frame and its flow is the member's or none
+    (a bar swinging 35 px, at 25-31 px: its leading side read as background moving, and the
+    dense flow, 0.5-0.7 px short, was taken instead of the outline): such profiles do not vote,
+    and a side with more than HIDDEN_SHARE of them does not (its other profiles are those the
+    dense flow read short: the workbench's beam moving 8-9 px, 0.6-0.8 of its motion)."""
+    height, width = shape
+    distance = BACKGROUND_OFFSET_PX + BACKGROUND_DRAG * moved
+    offset = distance * member.side
+    out_x = np.rint(np.where(member.vertical, member.px, member.px + offset))
+    out_y = np.rint(np.where(member.vertical, member.py + offset, member.py))
+    inside_frame = (out_x >= 0) & (out_x < width) & (out_y >= 0) & (out_y < height)
+    advance = member.side * np.where(member.vertical, at_profiles[:, 1], at_profiles[:, 0])
+    hidden = finite & (advance + HIDDEN_MARGIN_PX >= distance)
+    return out_x, out_y, finite & ~hidden & inside_frame, hidden
+
+
+def _background_clear(region: _Region, reference: np.ndarray, current: np.ndarray,
+                      at_profiles: np.ndarray) -> bool:
+    """Whether a tracked frame's pixels beyond the outline clearly show the background standing
+    still or moving with the member (see :func:`_background_seen`) on every side that can vote,
+    the member's motion at its profiles ``at_profiles`` being the outline fit's: a key too
+    still to show it is then known to have such a background without the frame's dense flow.
+    False where a side cannot tell (the frame is then measured in full, its dense flow asked)."""
+    member = region.member
+    finite = np.all(np.isfinite(at_profiles), axis=1)
+    if finite.sum() < 3:
+        return False
+    motion = np.median(at_profiles[finite], axis=0)
+    out_x, out_y, votes, hidden = _beyond(member, at_profiles, finite, float(np.hypot(*motion)),
+                                          reference.shape[:2])
+    sides = 0
+    # Each of the four sides on its own: the background beyond a bar's long sides may stand still
+    # where beyond its ends (the mask's, not the member's) the bar goes on, moving with itself.
+    for side in (-1, 1):
+        for vertical in (False, True):
+            on_side = (member.side == side) & (member.vertical == vertical)
+            voting = votes & on_side
+            if voting.sum() < 3 or hidden[on_side].sum() > HIDDEN_SHARE * finite[on_side].sum():
+                continue
+            if not _background_seen(reference, current, out_x[voting], out_y[voting], motion,
+                                    region.gain(current)):
+                return False
+            sides += 1
+    return sides > 0
 
 
 def _background_seen(reference: np.ndarray, current: np.ndarray, xs: np.ndarray, ys: np.ndarray,
@@ -903,6 +945,15 @@ class DeepFlow(DenseMethod):
             self.last_reach_px = None
             return self._dense(reference, current)
         reach = _reach_for(self._motion_px if self._chaining else None)
+        window = self.window_with(_margin(reach))
+        cut = window if window is not None else (slice(None), slice(None))
+        if np.array_equal(reference[cut], current[cut]):
+            # The reference itself (a clip's first frame): its flow is nought, not solved (the
+            # solver reads at most 6e-6 px there, at the cost of any full frame's).
+            self.last_reach_px = reach
+            flow = np.full(current.shape + (2,), np.nan, np.float32)
+            flow[cut] = 0.0
+            return flow
         while True:
             self.last_reach_px = reach
             flow = self._dense_in(reference, current, self.window_with(_margin(reach)))
@@ -1156,9 +1207,12 @@ class DeepFlow(DenseMethod):
                 and min(sigma) <= OUTLINE_MAX_SIGMA_PX):
             return None
         # A key too still to show its background standing still: measured in full (and checked)
-        # once the member has moved far enough to tell.
+        # once the member has moved far enough to tell, unless the frame's own pixels beyond the
+        # outline clearly show it.
         if not region.static_known and float(np.hypot(np.mean(now_u), np.mean(now_v))) >= STATIC_MIN_MOTION_PX:
-            return None
+            if not _background_clear(region, reference, current, np.column_stack(member.field.uv(fit.params))):
+                return None
+            region.static_known = True
         region.theta = fit.params
         self._count("outline")
         if state == "taken":
