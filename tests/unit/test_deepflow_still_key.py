@@ -83,6 +83,38 @@ def test_each_side_of_the_outline_shows_its_own_background() -> None:
     assert deepflow_module._background_clear(region, reference, render(1.0), moved) is True
     assert deepflow_module._background_clear(region, reference, render(1.0, 0.5), moved) is False
     assert deepflow_module._background_clear(region, reference, render(1.5), moved) is False
+    # The light 10 % brighter: the frame's gain scales the reference's predictions.
+    brighter = np.clip(render(1.0).astype(np.float64) * 1.1, 0, 255).astype(np.uint8)
+    assert deepflow_module._background_clear(region, reference, brighter, moved) is True
+    # Too little motion at the outline to tell, as in a full measurement.
+    assert deepflow_module._background_clear(region, reference, render(0.3), moved * 0.3) is False
+
+
+def test_the_warm_up_compiles_the_solver_and_the_tracking(monkeypatch) -> None:
+    """``compile_kernels`` (``make`` and every run's first step) must solve a dense flow and track
+    a frame: with the reference itself first, its flow nought, the solver's kernels were left to
+    a clip's first frame (a progress bar at 0 % while they compile, Ctrl-C waiting on them)."""
+    calls = {"deep_matching": 0, "refine": 0}
+    for name in calls:
+        original = getattr(deepflow_module, name)
+
+        def counted(*args, _name=name, _original=original, **kwargs):
+            calls[_name] += 1
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(deepflow_module, name, counted)
+    tracked = []
+    original_track = deepflow_module.DeepFlow._track
+
+    def track(self, *args, **kwargs):
+        found = original_track(self, *args, **kwargs)
+        tracked.append(found is not None)
+        return found
+
+    monkeypatch.setattr(deepflow_module.DeepFlow, "_track", track)
+    deepflow_module.compile_kernels()
+    assert calls["deep_matching"] >= 1 and calls["refine"] >= 1
+    assert any(tracked)
 
 
 def test_the_reference_itself_is_not_solved(monkeypatch) -> None:

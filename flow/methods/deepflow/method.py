@@ -600,8 +600,10 @@ def _background_clear(region: _Region, reference: np.ndarray, current: np.ndarra
     if finite.sum() < 3:
         return False
     motion = np.median(at_profiles[finite], axis=0)
-    out_x, out_y, votes, hidden = _beyond(member, at_profiles, finite, float(np.hypot(*motion)),
-                                          reference.shape[:2])
+    moved = float(np.hypot(*motion))
+    if moved < STATIC_MIN_MOTION_PX:
+        return False  # too little motion at the outline to tell, as in a full measurement
+    out_x, out_y, votes, hidden = _beyond(member, at_profiles, finite, moved, reference.shape[:2])
     sides = 0
     # Each of the four sides on its own: the background beyond a bar's long sides may stand still
     # where beyond its ends (the mask's, not the member's) the bar goes on, moving with itself.
@@ -1250,7 +1252,9 @@ def compile_kernels() -> None:
     method = DeepFlow()
     method.bind(reference, mask)
     method.restart()
-    for current in (reference, moved, moved):
+    # (Not the reference itself first: its flow is nought, not solved, and the solver's kernels
+    # would be left to the first frame of a clip.)
+    for current in (moved, moved, moved):
         method.calc(reference, current)
 
 
