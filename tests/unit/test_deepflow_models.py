@@ -61,11 +61,13 @@ def test_a_strong_texture_deforming_beyond_affine_is_read_by_the_dense_flow(kind
     truth = np.broadcast_to(shift, x.shape)[12:148]
     rmse = float(np.sqrt(np.mean((columns - truth) ** 2)))
     if kind == "sine":
-        # The dense field, pixel for pixel (its mean is the region's reading), follows the sine;
-        # the affine fit read a flat 0.014 px (RMSE 0.37 px).
+        # The dense field (its mean is the region's reading), corrected by one windowed step
+        # (flow.methods.deepflow.localfit), follows the sine; the affine fit read a flat 0.014 px
+        # (RMSE 0.37 px).
         assert method.counts["why_dense_deforms"] == 1 and method.counts["affine_readings"] == 0
-        np.testing.assert_array_equal(flow[poi], dense_flow[poi])
-        assert rmse < 0.05 * SINE_AMPLITUDE_PX, rmse
+        dense_columns = np.nanmean(np.where(poi, dense_flow[..., 0], np.nan)[:, 12:148], axis=0)
+        assert 0 < np.abs(flow[poi] - dense_flow[poi]).max() < 0.1
+        assert rmse < 0.05 * SINE_AMPLITUDE_PX and rmse <= float(np.sqrt(np.mean((dense_columns - truth) ** 2)))
     else:  # the check can fail: a rigid motion takes the affine fit
         assert method.counts["why_texture_fixes_motion"] == 1 and method.counts["why_dense_deforms"] == 0
         # (The dense flow reads this shift 0.0005 px long since its warp interpolates with the

@@ -33,6 +33,7 @@ from flow.methods.deepflow.deepmatching import (
     search_radius,
 )
 from flow.methods.deepflow.hidden import SceneCheck
+from flow.methods.deepflow.localfit import refine_locally
 from flow.methods.deepflow.member import MemberEdges, MemberFit, context_px
 from flow.methods.deepflow.regionfit import RegionFit, RegionMotion, affine_departure
 from flow.methods.deepflow.variational import VariationalParams, Workspace, refine
@@ -1153,6 +1154,11 @@ class DeepFlow(DenseMethod):
             outline = None
         chosen, model, reason = _choose(affine, outline, strong, deforms)
         self._count(model, reason)
+        if reason == "dense_deforms":
+            # The dense field read, its small deformations' shortfall taken off (see localfit).
+            u, v = refine_locally(reference, current, region.rows, region.cols, dense_u, dense_v)
+            flow[region.rows, region.cols, 0] = u
+            flow[region.rows, region.cols, 1] = v
         if model == "outline" and region.along_texture:
             self.counts["along_texture"] += 1
         if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
