@@ -13,7 +13,8 @@ The correction here is linear in the motion: a Gauss-Newton step of the brightne
 criterion in a Gaussian window of :data:`WINDOW_PX` around every POI (an inverse-compositional
 Lucas-Kanade step over the POIs only, so that no background pixel enters a window at the
 mask's edge), from the dense field. Its frequency response is the window's: the field's error
-at wavelengths well beyond the window is taken off (Sample 14's gain 0.80-0.975 -> 0.999-1.015),
+at wavelengths well beyond the window is taken off (Sample 14's gain 0.975 / 0.896 / 0.800 ->
+0.993 / 0.995 / 0.973 on L1 / L3 / L5),
 while at wavelengths within the window the dense field stays nearly as it was (one step, not
 iterated to the windowed estimate's own fixed point, which would add its noise there).
 
@@ -23,6 +24,11 @@ iterated to the windowed estimate's own fixed point, which would add its noise t
 * Both frames are smoothed by :data:`PRESMOOTH_PX` first: the noise's variance under an
   interpolant depends on the sub-pixel position and pulls a least-squares estimate towards
   half-pixel shifts (gain 1.01-1.02 without it on Sample 14).
+* The reference's gradient is that of its own B-spline interpolant (a central difference of the
+  samples reads fine speckle's slope short, and the step long).
+* Each window fits a brightness offset and gain with the motion (auto-exposure, flicker).
+* A window whose texture does not fix both directions (stripes, a flat patch's noise), one
+  with too few POIs, and a step longer than :data:`MAX_STEP_PX` keep the dense field.
 
 References
 ----------
@@ -39,16 +45,26 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-# The Gaussian window's standard deviation, px (Sample 14 with one step from the dense field:
-# 8 px: L1 / L3 / L5 column-mean RMSE 0.0037 / 0.0040 / 0.0047 px, gain 1.007 / 1.015 / 0.999;
-# 16 px: 0.0034 / 0.0036 / 0.0067, gain 1.022 / 1.018 / 0.971, a wider window leaving more of
-# the shorter periods to the dense field).
+# The Gaussian window's standard deviation, px (Sample 14, the default through the CLI: L1 / L3 /
+# L5 column-mean RMSE 0.0035 / 0.0037 / 0.0049 px, gain 0.993 / 0.995 / 0.973; a first version
+# without offset and gain, in a script: 16 px 0.0034 / 0.0036 / 0.0067, L5 gain 0.971, a wider
+# window leaving more of the shorter periods to the dense field; 12 px 0.0035 / 0.0036 / 0.0052).
 WINDOW_PX = 8.0
 PRESMOOTH_PX = 0.7
 SPLINE_ORDER = 3
+SPLINE_MODE = "mirror"  # the same at the spline's prefilter and its evaluation
 # Windows holding less than this share of a full window's weight in POIs (a POI at a thin
 # mask's edge) keep the dense field.
 MIN_COVER = 0.2
+# A window's texture must fix both directions: the structure tensor's smaller eigenvalue at least
+# MIN_GRADIENT grey levels per px squared (per unit of the window's weight) and MIN_ISOTROPY of
+# the larger one (stripes read 0.09 px RMS across themselves without it, a flat patch's noise
+# 0.085 px).
+MIN_GRADIENT = 1.0
+MIN_ISOTROPY = 0.01
+# A step longer than this (px, either axis) is not the correction of a converged dense field:
+# the dense field stays.
+MAX_STEP_PX = 0.5
 
 
 def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray, cols: np.ndarray,
@@ -56,8 +72,9 @@ def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray,
                    ) -> tuple[np.ndarray, np.ndarray]:
     """The POIs' motion ``(u, v)`` (px, at ``rows``, ``cols`` of the reference) after one
     windowed least-squares step from the dense field ``u``, ``v`` (see the module's notes).
-    Where a POI's window holds too little texture or too few POIs, or the frame is sampled
-    outside its bounds, the dense field stays."""
+    Where a POI's window holds too little texture in either direction or too few POIs, where
+    its step would be longer than :data:`MAX_STEP_PX`, or where the frame is sampled outside
+    its bounds, the dense field stays."""
     u = np.asarray(u, np.float64)
     v = np.asarray(v, np.float64)
     finite = np.isfinite(u) & np.isfinite(v)
@@ -68,19 +85,22 @@ def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray,
     reach = int(np.ceil(np.nanmax(np.abs(np.concatenate([u[finite], v[finite]]))))) + 4
     top, left = max(int(rows.min()) - pad, 0), max(int(cols.min()) - pad, 0)
     bottom, right = min(int(rows.max()) + pad + 1, height), min(int(cols.max()) + pad + 1, width)
-    ref = _smoothed(reference[top:bottom, left:right])
+    ref = _smoothed(reference[top:bottom, left:right]).astype(np.float64)
     # The frame over the box plus the motion's reach (where the POIs' pixels come from).
     c_top, c_left = max(top - reach, 0), max(left - reach, 0)
     c_bottom, c_right = min(bottom + reach, height), min(right + reach, width)
     coef = ndimage.spline_filter(_smoothed(current[c_top:c_bottom, c_left:c_right]).astype(np.float64),
-                                 order=SPLINE_ORDER)
+                                 order=SPLINE_ORDER, mode=SPLINE_MODE)
     r, c = rows - top, cols - left
-    gy, gx = np.gradient(ref)
-    gx_p, gy_p = gx[r, c].astype(np.float64), gy[r, c].astype(np.float64)
+    # The reference's gradient is its own interpolant's (a central difference of the samples
+    # reads fine speckle's slope short and the step long: 7 % on Sample 14, 20 % on 1 px speckle).
+    gy, gx = np.gradient(ndimage.spline_filter(ref, order=SPLINE_ORDER, mode=SPLINE_MODE))
+    level = ref[r, c] - float(np.mean(ref[r, c]))
+    basis = (gx[r, c], gy[r, c], np.ones(len(r)), level)
     ys = rows + np.where(finite, v, 0.0) - c_top
     xs = cols + np.where(finite, u, 0.0) - c_left
     inside = finite & (xs >= 0) & (ys >= 0) & (xs <= coef.shape[1] - 1) & (ys <= coef.shape[0] - 1)
-    warped = ndimage.map_coordinates(coef, [ys, xs], order=SPLINE_ORDER, prefilter=False, mode="nearest")
+    warped = ndimage.map_coordinates(coef, [ys, xs], order=SPLINE_ORDER, prefilter=False, mode=SPLINE_MODE)
     error = np.where(inside, warped - ref[r, c], 0.0)
     used = inside.astype(np.float64)
 
@@ -89,18 +109,27 @@ def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray,
         grid[r, c] = values
         return cv2.GaussianBlur(grid, (0, 0), window_px)[r, c]
 
-    a11, a12, a22 = window(used * gx_p * gx_p), window(used * gx_p * gy_p), window(used * gy_p * gy_p)
-    b1, b2 = window(gx_p * error), window(gy_p * error)
-    cover = window(used)
-    det = a11 * a22 - a12 * a12
-    # A window whose texture fixes both directions (the smaller eigenvalue of its structure
-    # tensor not vanishing against the larger) and that holds enough POIs.
-    trace = a11 + a22
-    good = inside & (cover >= MIN_COVER) & (det > 1e-6 * trace * trace) & (trace > 0)
-    safe = np.where(good, det, 1.0)
-    du = (a22 * b1 - a12 * b2) / safe
-    dv = (a11 * b2 - a12 * b1) / safe
-    return np.where(good, u - du, u), np.where(good, v - dv, v)
+    # Each window's least squares of the error on the motion and a brightness offset and gain
+    # (auto-exposure, flicker: a 5 % gain left 0.036 px RMS on a 0.3 px shift without them).
+    n = len(basis)
+    normal = np.empty((len(r), n, n))
+    for i in range(n):
+        for j in range(i, n):
+            normal[:, i, j] = normal[:, j, i] = window(used * basis[i] * basis[j])
+    rhs = np.stack([window(used * b * error) for b in basis], axis=1)
+    a11, a12, a22, cover = normal[:, 0, 0], normal[:, 0, 1], normal[:, 1, 1], normal[:, 2, 2]
+    # Texture in both directions: the structure tensor's smaller eigenvalue at least
+    # MIN_GRADIENT^2 per unit of the window's weight and MIN_ISOTROPY of the larger (stripes,
+    # a flat patch's noise: the dense field stays).
+    trace, det = a11 + a22, a11 * a22 - a12 * a12
+    smaller = 0.5 * (trace - np.sqrt(np.maximum(trace * trace - 4 * det, 0.0)))
+    good = (inside & (cover >= MIN_COVER) & (smaller >= MIN_GRADIENT ** 2 * np.maximum(cover, 1e-12))
+            & (smaller >= MIN_ISOTROPY * (trace - smaller)))
+    step = np.zeros((len(r), n))
+    if good.any():
+        step[good] = np.linalg.solve(normal[good], rhs[good][..., None])[..., 0]
+    good &= (np.abs(step[:, 0]) <= MAX_STEP_PX) & (np.abs(step[:, 1]) <= MAX_STEP_PX)
+    return np.where(good, u - step[:, 0], u), np.where(good, v - step[:, 1], v)
 
 
 def _smoothed(image: np.ndarray) -> np.ndarray:
