@@ -65,6 +65,7 @@ MIN_ISOTROPY = 0.01
 # A step longer than this (px, either axis) is not the correction of a converged dense field:
 # the dense field stays.
 MAX_STEP_PX = 0.5
+SOLVE_CHUNK = 65536  # POIs whose 4x4 systems are solved at once
 
 
 def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray, cols: np.ndarray,
@@ -105,29 +106,35 @@ def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray,
     used = inside.astype(np.float64)
 
     def window(values: np.ndarray) -> np.ndarray:
-        grid = np.zeros(ref.shape, np.float64)
+        grid = np.zeros(ref.shape, np.float32)
         grid[r, c] = values
         return cv2.GaussianBlur(grid, (0, 0), window_px)[r, c]
 
     # Each window's least squares of the error on the motion and a brightness offset and gain
     # (auto-exposure, flicker: a 5 % gain left 0.036 px RMS on a 0.3 px shift without them).
+    # The windowed sums are kept in float32, one array per entry, and the systems solved in
+    # chunks: a 3000x400 member's 1.2 M POIs cost tens of MB, not a (N, 4, 4) float64 stack.
     n = len(basis)
-    normal = np.empty((len(r), n, n))
-    for i in range(n):
-        for j in range(i, n):
-            normal[:, i, j] = normal[:, j, i] = window(used * basis[i] * basis[j])
-    rhs = np.stack([window(used * b * error) for b in basis], axis=1)
-    a11, a12, a22, cover = normal[:, 0, 0], normal[:, 0, 1], normal[:, 1, 1], normal[:, 2, 2]
+    pairs = [(i, j) for i in range(n) for j in range(i, n)]
+    sums = {pair: window(used * basis[pair[0]] * basis[pair[1]]) for pair in pairs}
+    rhs = [window(used * b * error) for b in basis]
+    a11, a12, a22, cover = sums[0, 0], sums[0, 1], sums[1, 1], sums[2, 2]
     # Texture in both directions: the structure tensor's smaller eigenvalue at least
     # MIN_GRADIENT^2 per unit of the window's weight and MIN_ISOTROPY of the larger (stripes,
     # a flat patch's noise: the dense field stays).
-    trace, det = a11 + a22, a11 * a22 - a12 * a12
+    trace, det = a11.astype(np.float64) + a22, a11.astype(np.float64) * a22 - a12.astype(np.float64) * a12
     smaller = 0.5 * (trace - np.sqrt(np.maximum(trace * trace - 4 * det, 0.0)))
     good = (inside & (cover >= MIN_COVER) & (smaller >= MIN_GRADIENT ** 2 * np.maximum(cover, 1e-12))
             & (smaller >= MIN_ISOTROPY * (trace - smaller)))
-    step = np.zeros((len(r), n))
-    if good.any():
-        step[good] = np.linalg.solve(normal[good], rhs[good][..., None])[..., 0]
+    step = np.zeros((len(r), 2))
+    chosen = np.flatnonzero(good)
+    for start in range(0, chosen.size, SOLVE_CHUNK):
+        part = chosen[start:start + SOLVE_CHUNK]
+        system = np.empty((part.size, n, n))
+        for i, j in pairs:
+            system[:, i, j] = system[:, j, i] = sums[i, j][part]
+        right = np.stack([b[part] for b in rhs], axis=1).astype(np.float64)
+        step[part] = np.linalg.solve(system, right[..., None])[:, :2, 0]
     good &= (np.abs(step[:, 0]) <= MAX_STEP_PX) & (np.abs(step[:, 1]) <= MAX_STEP_PX)
     return np.where(good, u - step[:, 0], u), np.where(good, v - step[:, 1], v)
 
