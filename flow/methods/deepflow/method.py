@@ -530,13 +530,10 @@ def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray 
     member = region.member
     height, width = flow.shape[:2]
     at_profiles = flow[region.prior_rows, region.prior_cols].astype(np.float64)
-    finite = np.all(np.isfinite(at_profiles), axis=1)
-    if finite.sum() < 3:
+    found = _outline_motion(at_profiles)
+    if found is None:
         return None
-    motion = np.median(at_profiles[finite], axis=0)
-    moved = float(np.hypot(*motion))
-    if moved < STATIC_MIN_MOTION_PX:
-        return None
+    finite, motion, moved = found
     out_x, out_y, votes, hidden = _beyond(member, at_profiles, finite, moved, (height, width))
     outside = flow[np.clip(out_y, 0, height - 1).astype(np.intp),
                    np.clip(out_x, 0, width - 1).astype(np.intp)].astype(np.float64)
@@ -544,9 +541,8 @@ def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray 
     tolerance = STATIC_RATIO * moved + STATIC_SLACK_PX
     verdicts = []
     for side in (-1, 1):
-        on_side = member.side == side
-        voting = votes & on_side
-        if voting.sum() < 3 or hidden[on_side].sum() > HIDDEN_SHARE * finite[on_side].sum():
+        voting = _voting(votes, hidden, finite, member.side == side)
+        if voting is None:
             continue
         beyond = np.median(outside[voting], axis=0)
         verdict = (float(np.hypot(*beyond)) <= tolerance
@@ -563,6 +559,28 @@ def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray 
                                           beyond, region.gain(current))
         verdicts.append(verdict)
     return all(verdicts) if verdicts else None
+
+
+def _outline_motion(at_profiles: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """The member's motion at its outline profiles (``at_profiles``, (N, 2) px): which are
+    known, their median motion and its size; None where fewer than 3 are known or the motion
+    is below STATIC_MIN_MOTION_PX (too small to tell a background's motion by)."""
+    finite = np.all(np.isfinite(at_profiles), axis=1)
+    if finite.sum() < 3:
+        return None
+    motion = np.median(at_profiles[finite], axis=0)
+    moved = float(np.hypot(*motion))
+    return None if moved < STATIC_MIN_MOTION_PX else (finite, motion, moved)
+
+
+def _voting(votes: np.ndarray, hidden: np.ndarray, finite: np.ndarray, on_side: np.ndarray) -> np.ndarray | None:
+    """The profiles of one side (``on_side``) whose background samples vote; None where fewer
+    than 3 do or more than HIDDEN_SHARE of the side's known profiles are hidden (see
+    :func:`_beyond`): the side does not vote."""
+    voting = votes & on_side
+    if voting.sum() < 3 or hidden[on_side].sum() > HIDDEN_SHARE * finite[on_side].sum():
+        return None
+    return voting
 
 
 def _beyond(member: MemberEdges, at_profiles: np.ndarray, finite: np.ndarray, moved: float,
@@ -597,22 +615,18 @@ def _background_clear(region: _Region, reference: np.ndarray, current: np.ndarra
     still to show it is then known to have such a background without the frame's dense flow.
     False where a side cannot tell (the frame is then measured in full, its dense flow asked)."""
     member = region.member
-    finite = np.all(np.isfinite(at_profiles), axis=1)
-    if finite.sum() < 3:
-        return False
-    motion = np.median(at_profiles[finite], axis=0)
-    moved = float(np.hypot(*motion))
-    if moved < STATIC_MIN_MOTION_PX:
-        return False  # too little motion at the outline to tell, as in a full measurement
+    found = _outline_motion(at_profiles)
+    if found is None:
+        return False  # too few profiles, or too little motion at the outline to tell, as in a full measurement
+    finite, motion, moved = found
     out_x, out_y, votes, hidden = _beyond(member, at_profiles, finite, moved, reference.shape[:2])
     sides = 0
     # Each of the four sides on its own: the background beyond a bar's long sides may stand still
     # where beyond its ends (the mask's, not the member's) the bar goes on, moving with itself.
     for side in (-1, 1):
         for vertical in (False, True):
-            on_side = (member.side == side) & (member.vertical == vertical)
-            voting = votes & on_side
-            if voting.sum() < 3 or hidden[on_side].sum() > HIDDEN_SHARE * finite[on_side].sum():
+            voting = _voting(votes, hidden, finite, (member.side == side) & (member.vertical == vertical))
+            if voting is None:
                 continue
             if not _background_seen(reference, current, out_x[voting], out_y[voting], motion,
                                     region.gain(current)):
