@@ -389,6 +389,29 @@ def _os_error_text(err: OSError, args: argparse.Namespace) -> str:
     return f"{what}: {where} (check the path and permissions)"
 
 
+def _stamps(paths: list[Path]) -> dict[Path, tuple[int, int] | None]:
+    """Each path's (inode, modification time), None where it does not exist."""
+    stamps: dict[Path, tuple[int, int] | None] = {}
+    for path in paths:
+        try:
+            found = path.stat()
+            stamps[path] = (found.st_ino, found.st_mtime_ns)
+        except OSError:
+            stamps[path] = None
+    return stamps
+
+
+def _outcome(claims: list[Path], before: dict[Path, tuple[int, int] | None]) -> str:
+    """What an interrupted run left: nothing (its all-or-nothing output set was taken back or
+    never published), or, interrupted after publishing it (while it said so, or exiting), the
+    outputs, complete."""
+    now = _stamps(claims)
+    written = [path for path in claims if now[path] is not None and now[path] != before.get(path)]
+    if written:
+        return f"its outputs had been written, complete: {', '.join(map(str, written))}"
+    return "no output written"
+
+
 class Terminated(BaseException):
     """SIGTERM (what `timeout`, SLURM and `kill` send), raised where the run is, so that
     every ``finally`` and all-or-nothing output set cleans up as on Ctrl-C."""
@@ -428,6 +451,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import threading
 
     quiet_decoder_logs()
+    program = argv is None and threading.current_thread() is threading.main_thread()  # not a caller's
     parser = build_parser()
     try:
         argv = expand_project_argv(sys.argv[1:] if argv is None else argv)
@@ -438,15 +462,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    claims = _claims(args)
+    before = _stamps(claims)
     try:
-        with claimed(_claims(args)) as existing:
+        with claimed(claims) as existing:
             code = args.func(args)
             if code == 0 and existing:
                 print(f"refflow {args.command}: note: replaced the earlier {', '.join(map(str, existing))}",
                       file=sys.stderr)
             return code
     except Terminated:
-        print(f"refflow {args.command}: terminated (SIGTERM); no output written", file=sys.stderr)
+        print(f"refflow {args.command}: terminated (SIGTERM); {_outcome(claims, before)}", file=sys.stderr)
         return 143
     except InputError as err:
         print(f"refflow {args.command}: error: {err}", file=sys.stderr)
@@ -456,11 +482,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"refflow {args.command}: error: {_os_error_text(err, args)}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        print(f"refflow {args.command}: interrupted; no output written", file=sys.stderr)
+        print(f"refflow {args.command}: interrupted; {_outcome(claims, before)}", file=sys.stderr)
         return 130
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if program:
+            # The outcome is decided and said: a Ctrl-C from here on (the interpreter's exit,
+            # joining threads) would end the process by the signal, or print a traceback, after
+            # the run's line, whatever the outputs' state. (Not for callers in the same process.)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 if __name__ == "__main__":

@@ -110,3 +110,48 @@ def test_ctrl_c_ends_track_within_a_fraction_of_a_frame(slow_clip, tmp_path, job
     print(f"jobs {jobs}: Ctrl-C ended the run in {took:.2f} s")
     assert took < EXIT_WITHIN_S, f"Ctrl-C took {took:.1f} s to end the run (jobs {jobs})"
     assert list(out.parent.iterdir()) == []
+
+
+def _python(code: str, *args: str, **kwargs) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    return subprocess.run([sys.executable, "-c", code, *args], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=300, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kwargs)
+
+
+def test_ctrl_c_after_the_outputs_are_written_says_so(slow_clip, tmp_path) -> None:
+    """Ctrl-C after the output set was published (while the run prints its line) leaves the
+    files and says they are complete, not "no output written" (which it said, the files there)."""
+    out = tmp_path / "bar.csv"
+    code = ("import sys, flow.cli as cli\n"
+            "track = cli.cmd_track\n"
+            "def interrupted_after(args):\n"
+            "    track(args)\n"
+            "    raise KeyboardInterrupt\n"
+            "cli.cmd_track = interrupted_after\n"
+            "sys.exit(cli.main())\n")
+    run = _python(code, "track", str(slow_clip["video"]), "--mask", str(slow_clip["mask"]), "--mm-per-px", "1",
+                  "--out", str(out), "--no-progress")
+    assert run.returncode == 130, run.stderr[-2000:]
+    assert "interrupted; its outputs had been written, complete" in run.stderr, run.stderr[-2000:]
+    assert "no output written" not in run.stderr
+    assert out.is_file() and out.with_suffix(".json").is_file()
+
+
+def test_ctrl_c_while_the_program_exits_changes_nothing() -> None:
+    """Once ``refflow`` has said how the run ended, a Ctrl-C while the interpreter exits neither
+    ends the process by the signal (exit status -2 after a finished run) nor prints a
+    traceback; a caller in the same process keeps its own Ctrl-C."""
+    code = ("import os, signal, sys\n"
+            "from flow.cli import main\n"
+            "code = main()\n"
+            "os.kill(os.getpid(), signal.SIGINT)\n"
+            "print('still here')\n"
+            "sys.exit(code)\n")
+    run = _python(code, "methods")
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "still here" in run.stdout and "Traceback" not in run.stderr
+    from flow.cli import main
+
+    handler = signal.getsignal(signal.SIGINT)
+    assert main(["methods"]) == 0
+    assert signal.getsignal(signal.SIGINT) is handler
