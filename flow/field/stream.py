@@ -37,7 +37,8 @@ GZIP_LEVEL = 1
 SUFFIXES = (".h5", ".hdf5")
 
 _UNITS = {"u_px": "px", "v_px": "px", "u_mm": "mm", "v_mm": "mm", "x_px": "px", "y_px": "px", "time_s": "s",
-          "sigma_dx_px": "px", "sigma_dy_px": "px", "sigma_px": "px", "offset_u_px": "px", "offset_v_px": "px"}
+          "sigma_dx_px": "px", "sigma_dy_px": "px", "sigma_px": "px", "offset_u_px": "px", "offset_v_px": "px",
+          "sigma_u_px": "px", "sigma_v_px": "px"}
 _DESCRIPTION = {
     "u_px": "displacement along x (right), image pixels, reference offset and camera motion removed; "
             "NaN outside the mask and where the frame was not measured",
@@ -47,8 +48,11 @@ _DESCRIPTION = {
     "kept": "1 at the POIs eq. 10-11 kept (a region's mean over them is its CSV reading)",
     "region_map": "each pixel's region label (0: not in the mask)",
     "frame_valid": "the CSV's valid flag per frame and region",
-    "sigma_dx_px": "the CSV's standard uncertainty of the region's mean dx (no method gives one per pixel)",
+    "sigma_dx_px": "the CSV's standard uncertainty of the region's mean dx",
     "sigma_dy_px": "the same for dy", "sigma_px": "sqrt(sigma_dx_px^2 + sigma_dy_px^2)",
+    "sigma_u_px": "standard uncertainty of u_px at each pixel where the method measured it on its own "
+                  "(deepflow: a deforming region's windowed step); NaN elsewhere",
+    "sigma_v_px": "the same for v_px",
     "offset_u_px": "the reference's own reading removed from u_px (eq. 10-12's offset)",
     "offset_v_px": "the same for v_px",
     "x_px": "full-frame column of each pixel (undistorted pixels with a calibration)",
@@ -155,6 +159,8 @@ class FieldStream:
         self._file = h5py.File(self.path, "w")
         self._u = _frame_dataset(self._file, "u_px", inside.shape, np.float32, np.nan)
         self._v = _frame_dataset(self._file, "v_px", inside.shape, np.float32, np.nan)
+        self._su = _frame_dataset(self._file, "sigma_u_px", inside.shape, np.float32, np.nan)
+        self._sv = _frame_dataset(self._file, "sigma_v_px", inside.shape, np.float32, np.nan)
         self._file.create_dataset("region_map", data=np.where(self._inside, inside, 0).astype(np.int16))
         self._file.create_dataset("x_px", data=np.arange(self.box.left, self.box.right, dtype=np.float64)
                                   + origin_px[0])
@@ -175,11 +181,17 @@ class FieldStream:
 
     # -- called by the driver's threads (pure) and its collector (in frame order) --
 
-    def cut(self, flow: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def cut(self, flow: np.ndarray, dx: np.ndarray, dy: np.ndarray, sigma: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
         """A frame's displacement at the box's mask pixels (1-D, raster order) from a method's
-        ``flow``: camera motion removed, the POIs' values the readings ``dx``, ``dy`` themselves."""
+        ``flow``: camera motion removed, the POIs' values the readings ``dx``, ``dy`` themselves;
+        and their standard uncertainty from the method's per-pixel ``sigma`` (like the flow;
+        None: the method has none in this frame)."""
         rows = self._rows + self.box.top - self.flow_origin[1]
         cols = self._cols + self.box.left - self.flow_origin[0]
+        su = sv = None
+        if sigma is not None:
+            su, sv = sigma[rows, cols, 0].astype(np.float32), sigma[rows, cols, 1].astype(np.float32)
         u = flow[rows, cols, 0].astype(np.float64)
         v = flow[rows, cols, 1].astype(np.float64)
         background = self._background
@@ -189,7 +201,7 @@ class FieldStream:
             u, v = u - mx, v - my
         u, v = u.astype(np.float32), v.astype(np.float32)
         u[self._poi_at], v[self._poi_at] = dx, dy
-        return u, v
+        return u, v, su, sv
 
     def set_image(self, reference: np.ndarray) -> None:
         """Keep the reference image's box (the backdrop of ``refflow field-plot``)."""
@@ -201,11 +213,15 @@ class FieldStream:
         """The reference's own reading (a part without the reference frame measures it apart)."""
         self.offset = (u.astype(np.float64), v.astype(np.float64))
 
-    def append(self, index: int, u: np.ndarray, v: np.ndarray) -> None:
-        """Write frame ``index`` (frames come in order)."""
+    def append(self, index: int, u: np.ndarray, v: np.ndarray, sigma_u: np.ndarray | None = None,
+               sigma_v: np.ndarray | None = None) -> None:
+        """Write frame ``index`` (frames come in order); ``sigma_u``, ``sigma_v``: the mask
+        pixels' standard uncertainty (None: NaN, the method has none)."""
         row = len(self.frames)
-        for dataset, values in ((self._u, u), (self._v, v)):
+        for dataset, values in ((self._u, u), (self._v, v), (self._su, sigma_u), (self._sv, sigma_v)):
             dataset.resize(row + 1, axis=0)
+            if values is None:
+                continue  # the fill value, NaN: nothing is written (nor stored, compressed)
             image = np.full(self.box.shape, np.nan, np.float32)
             image[self._rows, self._cols] = values
             dataset[row] = image
@@ -364,7 +380,10 @@ def merge_parts(final: str | Path, parts: list[str | Path]) -> FieldStream:
         for handle in opened:
             for row, index in enumerate(handle["frame"][()]):
                 u, v = handle["u_px"][row], handle["v_px"][row]
-                stream.append(int(index), u[rows, cols], v[rows, cols])
+                # (A part written before the per-pixel uncertainty has none.)
+                sigma = [handle[name][row][rows, cols] if name in handle else None
+                         for name in ("sigma_u_px", "sigma_v_px")]
+                stream.append(int(index), u[rows, cols], v[rows, cols], *sigma)
         return stream
     finally:
         for handle in opened:

@@ -209,7 +209,8 @@ class _FrameResult(NamedTuple):
     residual: np.ndarray  # (R,) grey levels
     camera: np.ndarray  # (R, 2) px, NaN without a background
     sigma: np.ndarray  # (R, 2) px
-    field: tuple[np.ndarray, np.ndarray] | None = None  # the mask pixels' (u, v) for --field
+    # The mask pixels' (u, v) for --field, and their standard uncertainty (None: the method has none).
+    field: tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None] | None = None
     hidden: bool | None = None  # the method saw nothing of the scene in the frame (see Tracks.hidden)
 
 
@@ -240,7 +241,8 @@ class _PoiReadout:
         sigma = np.array([own[int(label)] if int(label) in own else lk.sigma(error[group])
                           for label, group, lk in zip(labels, groups, self._lks, strict=True)], np.float64)
         cdx, cdy, camera = self._compensate(flow, dx, dy)
-        field = None if self._field is None else self._field.cut(flow, cdx, cdy)
+        field = None if self._field is None else self._field.cut(flow, cdx, cdy,
+                                                                  getattr(method, "last_field_sigma", None))
         hidden = getattr(method, "last_hidden", None)  # None: the method does not tell
         return _FrameResult(cdx, cdy, residual, camera, sigma, field, None if hidden is None else bool(hidden))
 
@@ -502,7 +504,7 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         own = measure_chain([(reference_frame, 0.0, reference, True)])[0][2]
         offset = (own.dx.astype(np.float64), own.dy.astype(np.float64))
         if field is not None:
-            field.set_reference(*own.field)
+            field.set_reference(*own.field[:2])
 
     collected = _Collected(len(poi_xy), store_dir, field)
     t1 = time.perf_counter()

@@ -173,10 +173,10 @@ def test_merge_needs_every_parts_field(clip, tmp_path, capsys) -> None:
 def test_a_failed_run_leaves_no_field(clip, tmp_path, monkeypatch) -> None:
     from flow.field import stream as field
 
-    def broken(self, index, u, v):
+    def broken(self, index, *values):
         if index == 6:
             raise KeyboardInterrupt
-        return original(self, index, u, v)
+        return original(self, index, *values)
 
     original = field.FieldStream.append
     monkeypatch.setattr(field.FieldStream, "append", broken)
@@ -239,3 +239,40 @@ def test_field_plot_refuses_a_file_that_is_no_field(tmp_path, capsys) -> None:
     assert main(["field-plot", str(other), "--out", str(tmp_path / "p")]) == 2
     assert "no refflow field file" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["other.h5"]
+
+
+def test_the_default_gives_a_deforming_regions_pixels_their_uncertainty(clip, tmp_path) -> None:
+    """The sine deforms the speckle beyond any affine field: the default reads it pixel by pixel
+    (a windowed step, flow.methods.deepflow.localfit) and writes each pixel's uncertainty,
+    NaN outside the mask and in the reference frame (measured against itself); a method that
+    has none (farneback) leaves the datasets NaN. Parts merged give the whole run's."""
+    whole = tmp_path / "whole"
+    common = ["--rect", RECT, "--reference-frame", "4"]
+    assert _track(clip, whole, *common, method="deepflow") == 0
+    with h5py.File(whole.with_suffix(".h5"), "r") as f:
+        inside = f["region_map"][()] > 0
+        assert f["sigma_u_px"].shape == f["u_px"].shape and f["sigma_u_px"].attrs["units"] == "px"
+        for frame in (3, 8, 13):
+            for name in ("sigma_u_px", "sigma_v_px"):
+                sigma = f[name][frame]
+                assert np.isfinite(sigma[inside]).mean() > 0.9, (frame, name)
+                assert np.all(np.isnan(sigma[~inside]))
+                assert 0 < np.nanmedian(sigma) < 0.05, (frame, name)
+        assert np.all(np.isnan(f["sigma_u_px"][4]))
+    parts, fields = [], []
+    for k, frames in enumerate(("0:6", "6:")):
+        raw, field = tmp_path / f"p{k}.npz", tmp_path / f"p{k}.h5"
+        assert main(["track", str(clip), "--fps", str(sine.FPS), "--no-progress", *common, "--frames", frames,
+                     "--raw-tracks", str(raw), "--field", str(field)]) == 0
+        parts.append(str(raw))
+        fields.append(str(field))
+    merged = tmp_path / "merged"
+    assert main(["merge", *parts, *[a for f in fields for a in ("--part-field", f)],
+                 "--out", str(merged.with_suffix(".csv")), "--field", str(merged.with_suffix(".h5"))]) == 0
+    with h5py.File(whole.with_suffix(".h5"), "r") as a, h5py.File(merged.with_suffix(".h5"), "r") as b:
+        for name in ("sigma_u_px", "sigma_v_px", "u_px"):
+            assert np.array_equal(a[name][()], b[name][()], equal_nan=True), name
+    baseline = tmp_path / "farneback"
+    assert _track(clip, baseline, *common) == 0
+    with h5py.File(baseline.with_suffix(".h5"), "r") as f:
+        assert np.all(np.isnan(f["sigma_u_px"][()])) and np.all(np.isnan(f["sigma_v_px"][()]))

@@ -30,6 +30,13 @@ iterated to the windowed estimate's own fixed point, which would add its noise t
 * A window whose texture does not fix both directions (stripes, a flat patch's noise), one
   with too few POIs, and a step longer than :data:`MAX_STEP_PX` keep the dense field.
 
+Each corrected POI's standard uncertainty (``with_sigma``) is its window's least-squares
+covariance: the window's residual variance after the step times the inverse of its normal
+matrix, times the ratio of the window's squared weights to its weights (the effective number of
+pixels a Gaussian window holds), times the presmoothing's correlation of neighbouring residuals
+(the inverse of its kernel's squared weights: the smoothed noise's sum over a window varies as
+the raw noise's). A POI whose dense field stays has none (NaN).
+
 References
 ----------
 .. [1] B. D. Lucas, T. Kanade, "An iterative image registration technique with an application to
@@ -69,18 +76,19 @@ SOLVE_CHUNK = 65536  # POIs whose 4x4 systems are solved at once
 
 
 def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                   u: np.ndarray, v: np.ndarray, *, window_px: float = WINDOW_PX
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   u: np.ndarray, v: np.ndarray, *, window_px: float = WINDOW_PX, with_sigma: bool = False
+                   ) -> tuple[np.ndarray, ...]:
     """The POIs' motion ``(u, v)`` (px, at ``rows``, ``cols`` of the reference) after one
     windowed least-squares step from the dense field ``u``, ``v`` (see the module's notes).
     Where a POI's window holds too little texture in either direction or too few POIs, where
     its step would be longer than :data:`MAX_STEP_PX`, or where the frame is sampled outside
-    its bounds, the dense field stays."""
+    its bounds, the dense field stays. ``with_sigma``: also each POI's standard uncertainty
+    ``(sigma_u, sigma_v)`` (px; NaN where the dense field stays)."""
     u = np.asarray(u, np.float64)
     v = np.asarray(v, np.float64)
     finite = np.isfinite(u) & np.isfinite(v)
     if finite.sum() < 3:
-        return u, v
+        return (u, v, np.full(u.shape, np.nan), np.full(v.shape, np.nan)) if with_sigma else (u, v)
     height, width = reference.shape
     pad = int(np.ceil(3 * window_px)) + 2
     reach = int(np.ceil(np.nanmax(np.abs(np.concatenate([u[finite], v[finite]]))))) + 4
@@ -127,6 +135,13 @@ def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray,
     good = (inside & (cover >= MIN_COVER) & (smaller >= MIN_GRADIENT ** 2 * np.maximum(cover, 1e-12))
             & (smaller >= MIN_ISOTROPY * (trace - smaller)))
     step = np.zeros((len(r), 2))
+    variance = np.full((len(r), 2), np.nan) if with_sigma else None
+    if with_sigma:
+        squares = window(used * error * error).astype(np.float64)
+        # The window's squared weights (a Gaussian's square is the Gaussian of sigma / sqrt 2).
+        grid = np.zeros(ref.shape, np.float32)
+        grid[r, c] = used
+        weight2 = cv2.GaussianBlur(grid, (0, 0), window_px / np.sqrt(2.0))[r, c] / (4.0 * np.pi * window_px ** 2)
     chosen = np.flatnonzero(good)
     for start in range(0, chosen.size, SOLVE_CHUNK):
         part = chosen[start:start + SOLVE_CHUNK]
@@ -134,10 +149,33 @@ def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray,
         for i, j in pairs:
             system[:, i, j] = system[:, j, i] = sums[i, j][part]
         right = np.stack([b[part] for b in rhs], axis=1).astype(np.float64)
-        step[part] = np.linalg.solve(system, right[..., None])[:, :2, 0]
+        solution = np.linalg.solve(system, right[..., None])[..., 0]
+        step[part] = solution[:, :2]
+        if with_sigma:
+            # The residual's weighted variance after the step, and the step's covariance.
+            rss = np.maximum(squares[part] - np.sum(solution * right, axis=1), 0.0)
+            cover_part = cover[part].astype(np.float64)
+            scale = rss / cover_part * (weight2[part] / cover_part) / _KERNEL_SQUARES
+            inverse = np.linalg.inv(system)
+            variance[part, 0] = scale * inverse[:, 0, 0]
+            variance[part, 1] = scale * inverse[:, 1, 1]
     good &= (np.abs(step[:, 0]) <= MAX_STEP_PX) & (np.abs(step[:, 1]) <= MAX_STEP_PX)
-    return np.where(good, u - step[:, 0], u), np.where(good, v - step[:, 1], v)
+    out_u, out_v = np.where(good, u - step[:, 0], u), np.where(good, v - step[:, 1], v)
+    if not with_sigma:
+        return out_u, out_v
+    sigma = np.where(good[:, None], np.sqrt(variance), np.nan)
+    return out_u, out_v, sigma[:, 0], sigma[:, 1]
 
 
 def _smoothed(image: np.ndarray) -> np.ndarray:
     return cv2.GaussianBlur(np.asarray(image, np.float32), (0, 0), PRESMOOTH_PX)
+
+
+def _kernel_squares() -> float:
+    """The sum of the squared weights of the presmoothing's 2-D kernel (its impulse response)."""
+    impulse = np.zeros((33, 33), np.float32)
+    impulse[16, 16] = 1.0
+    return float(np.sum(_smoothed(impulse).astype(np.float64) ** 2))
+
+
+_KERNEL_SQUARES = _kernel_squares()

@@ -1001,6 +1001,7 @@ class DeepFlow(DenseMethod):
         check_pair(reference, current)
         regions = self._regions if current.shape == self._bound_shape else []
         self.last_sigmas_px = {}
+        self.last_field_sigma = None  # set where a region is read pixel by pixel (see _full)
         # None where the frame is not checked (no region refined: deepflow-dense).
         self.last_hidden = None if not regions or self._scene is None else False
         if self.last_hidden is not None and self._scene.hidden(current):
@@ -1169,10 +1170,16 @@ class DeepFlow(DenseMethod):
         chosen, model, reason = _choose(affine, outline, strong, deforms)
         self._count(model, reason)
         if reason == "dense_deforms":
-            # The dense field read, its small deformations' shortfall taken off (see localfit).
-            u, v = refine_locally(reference, current, region.rows, region.cols, dense_u, dense_v)
+            # The dense field read, its small deformations' shortfall taken off (see localfit),
+            # and each POI's own uncertainty for the field file.
+            u, v, sigma_u, sigma_v = refine_locally(reference, current, region.rows, region.cols, dense_u,
+                                                    dense_v, with_sigma=True)
             flow[region.rows, region.cols, 0] = u
             flow[region.rows, region.cols, 1] = v
+            if self.last_field_sigma is None or self.last_field_sigma.shape[:2] != flow.shape[:2]:
+                self.last_field_sigma = np.full(flow.shape[:2] + (2,), np.nan, np.float32)
+            self.last_field_sigma[region.rows, region.cols, 0] = sigma_u
+            self.last_field_sigma[region.rows, region.cols, 1] = sigma_v
         if model == "outline" and region.along_texture:
             self.counts["along_texture"] += 1
         if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
