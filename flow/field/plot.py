@@ -1,7 +1,8 @@
 """``refflow field-plot FIELD.h5 --out PREFIX``: pictures of a displacement field file
 (:mod:`flow.field.stream`): a map at one frame over the reference image, a movie of the field over
-time and, with ``--hz F``, the operational deflection shape at F (each pixel's amplitude and
-phase at F from its own spectrum).
+time, with ``--hz F`` the operational deflection shape at F (each pixel's amplitude and
+phase at F from its own spectrum), and where the file has each pixel's uncertainty at the map's
+frame (``sigma_u_px``, ``sigma_v_px``), its map.
 
 The file is read a frame at a time: the movie is written as it is drawn (MP4), or from at
 most :data:`GIF_FRAMES` frames spread over the clip (a GIF is held whole by its writer).
@@ -277,12 +278,47 @@ def plot(path: str, prefix: str, *, frame: int | None = None, component: str | N
             _check_hz(field, hz)
         chosen, limit, busiest = scan(field, component)
         row = busiest if frame is None else int(np.flatnonzero(frames == frame)[0])
+        sigma = _pixel_sigma(field, row)
+        if sigma is not None:
+            outputs.append(Path(f"{prefix}_sigma.png"))
+            check_outputs(outputs[-1:], [("the field file", Path(path))], option="--out")
         with atomic_paths(*outputs) as written:
             map_figure(field, row, chosen, limit, written[0])
             movie(field, chosen, limit, written[1], fps=fps)
             if hz is not None:
                 deflection_figure(field, hz, written[2])
+            if sigma is not None:
+                sigma_figure(field, row, sigma, written[-1])
     return outputs
+
+
+def _pixel_sigma(field: Field, row: int) -> np.ndarray | None:
+    """The uncertainty of each pixel's displacement vector at frame ``row`` (px), None where the
+    file has none there."""
+    if "sigma_u_px" not in field.handle or "sigma_v_px" not in field.handle:
+        return None
+    sigma = np.hypot(field["sigma_u_px"][row].astype(np.float64), field["sigma_v_px"][row].astype(np.float64))
+    return sigma if np.isfinite(sigma).any() else None
+
+
+def sigma_figure(field: Field, row: int, sigma: np.ndarray, path: Path) -> None:
+    """Each pixel's standard uncertainty at frame ``row`` over the reference image."""
+    import matplotlib.pyplot as plt
+
+    height, width = sigma.shape
+    size = (min(12.0, max(5.0, width / 100)) + 1.5, min(9.0, max(2.5, height / 100)) + 1.0)
+    fig, ax = plt.subplots(figsize=size, dpi=110, layout="constrained")
+    extent = _extent(field)
+    ax.imshow(_backdrop(field), cmap="gray", vmin=0, vmax=1, extent=extent, interpolation="nearest")
+    top = float(np.percentile(sigma[np.isfinite(sigma)], LIMIT_PERCENTILE)) or 1e-3
+    shown = ax.imshow(np.ma.masked_invalid(sigma), cmap="magma", vmin=0.0, vmax=top, alpha=0.85, extent=extent,
+                      interpolation="nearest")
+    fig.colorbar(shown, ax=ax, label="sigma of the displacement, px", shrink=0.9)
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    ax.set_title(f"sigma (noise) at frame {int(field['frame'][row])}, median {float(np.nanmedian(sigma)):.2g} px")
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def cmd_field_plot(args: argparse.Namespace) -> int:
@@ -297,8 +333,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "field-plot", help="map, movie and deflection shape of a displacement field (track --field)",
         description="Pictures of a `refflow track --field` file: PREFIX_map.png (the field at one frame over "
-                    "the reference image), PREFIX_field.gif or .mp4 (the field over time) and, with --hz, "
-                    "PREFIX_ods.png (each pixel's amplitude and phase at that frequency).")
+                    "the reference image), PREFIX_field.gif or .mp4 (the field over time), with --hz "
+                    "PREFIX_ods.png (each pixel's amplitude and phase at that frequency), and where the file "
+                    "has each pixel's uncertainty at the map's frame, PREFIX_sigma.png.")
     p.add_argument("field", help="a field file written by `refflow track --field`")
     p.add_argument("--out", required=True, metavar="PREFIX", help="prefix of the pictures written")
     p.add_argument("--frame", type=int, help="video frame index of the map (default: the frame moving most)")

@@ -245,7 +245,8 @@ def test_the_default_gives_a_deforming_regions_pixels_their_uncertainty(clip, tm
     """The sine deforms the speckle beyond any affine field: the default reads it pixel by pixel
     (a windowed step, flow.methods.deepflow.localfit) and writes each pixel's uncertainty,
     NaN outside the mask and in the reference frame (measured against itself); a method that
-    has none (farneback) leaves the datasets NaN. Parts merged give the whole run's."""
+    has none (farneback) leaves the datasets NaN. Parts merged give the whole run's; field-plot
+    maps it."""
     whole = tmp_path / "whole"
     common = ["--rect", RECT, "--reference-frame", "4"]
     assert _track(clip, whole, *common, method="deepflow") == 0
@@ -276,3 +277,8 @@ def test_the_default_gives_a_deforming_regions_pixels_their_uncertainty(clip, tm
     assert _track(clip, baseline, *common) == 0
     with h5py.File(baseline.with_suffix(".h5"), "r") as f:
         assert np.all(np.isnan(f["sigma_u_px"][()])) and np.all(np.isnan(f["sigma_v_px"][()]))
+    # field-plot maps the uncertainty where the file has it at the map's frame, only there.
+    assert main(["field-plot", str(whole.with_suffix(".h5")), "--out", str(tmp_path / "pic"), "--frame", "8"]) == 0
+    assert (tmp_path / "pic_sigma.png").stat().st_size > 1000
+    assert main(["field-plot", str(baseline.with_suffix(".h5")), "--out", str(tmp_path / "base")]) == 0
+    assert (tmp_path / "base_map.png").is_file() and not (tmp_path / "base_sigma.png").exists()
