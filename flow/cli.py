@@ -403,13 +403,17 @@ def _stamps(paths: list[Path]) -> dict[Path, tuple[int, int] | None]:
 
 def _outcome(claims: list[Path], before: dict[Path, tuple[int, int] | None]) -> str:
     """What an interrupted run left: nothing (its all-or-nothing output set was taken back or
-    never published), or, interrupted after publishing it (while it said so, or exiting), the
-    outputs, complete."""
+    never published), or, interrupted after publishing it (while it said its last line), the
+    outputs, complete; a set that is neither is named as such."""
     now = _stamps(claims)
     written = [path for path in claims if now[path] is not None and now[path] != before.get(path)]
-    if written:
+    if not written:
+        return "no output written"
+    if len(written) == len(claims):
         return f"its outputs had been written, complete: {', '.join(map(str, written))}"
-    return "no output written"
+    others = [path for path in claims if path not in written]
+    return (f"only part of its outputs was written ({', '.join(map(str, written))}; not "
+            f"{', '.join(map(str, others))}): run it again")
 
 
 class Terminated(BaseException):
@@ -463,9 +467,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     claims = _claims(args)
-    before = _stamps(claims)
+    before: dict[Path, tuple[int, int] | None] = {path: None for path in claims}
     try:
         with claimed(claims) as existing:
+            before = _stamps(claims)  # under the claim: no other run writes them now
             code = args.func(args)
             if code == 0 and existing:
                 print(f"refflow {args.command}: note: replaced the earlier {', '.join(map(str, existing))}",

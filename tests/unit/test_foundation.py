@@ -353,3 +353,32 @@ def test_no_function_over_100_lines(package):
                 if lines > 100:
                     long[f"{path.relative_to(ROOT)}:{node.name}"] = lines
     assert not long, f"functions over 100 lines: {long}"
+
+
+@pytest.mark.parametrize("interrupted_at", [0, 1, 2])
+def test_atomic_paths_takes_back_a_rename_interrupted_as_it_returns(tmp_path, monkeypatch, interrupted_at):
+    """Ctrl-C just after a rename returned, before the set noted it: that file is taken back
+    with the others (the run left one file of three on disk, saying it wrote them); a file of
+    the set not renamed yet keeps its earlier version."""
+    import refflow.io as rio
+    from refflow.io import atomic_paths
+
+    finals = [tmp_path / name for name in ("a.npz", "b.json", "c.csv")]
+    finals[2].write_text("earlier")
+    renamed = []
+    publish = rio._publish
+
+    def interrupted(tmp, final):
+        publish(tmp, final)
+        renamed.append(final)
+        if len(renamed) == interrupted_at + 1:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(rio, "_publish", interrupted)
+    with pytest.raises(KeyboardInterrupt), atomic_paths(*finals) as temporaries:
+        for tmp in temporaries:
+            tmp.write_text("new")
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == ([] if interrupted_at == 2 else ["c.csv"]), left
+    if interrupted_at < 2:
+        assert finals[2].read_text() == "earlier"
