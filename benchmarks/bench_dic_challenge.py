@@ -76,6 +76,7 @@ STARS = {
               lambda x: 10 + 290 * x / 4000),
 }
 WITHIN = 0.10  # "read within 10 %"
+STAR_CURVE_STEP = 4  # columns between the points of a Star's amplitude curve kept in the JSON
 
 
 def frames_folder(folder: Path, names: tuple[str, ...] | list[str], into: Path) -> Path:
@@ -147,9 +148,32 @@ def sample14(method: str, work: Path) -> dict:
             levels[level] = {"rmse_px": float(np.sqrt(np.mean((measured - truth) ** 2))),
                              "gain": gain_of(measured, truth),
                              "shortest_period_px": shortest_period_within(measured, truth),
-                             "column_mean_u_px": [round(float(m), 5) for m in measured]}
+                             "column_mean_u_px": [round(float(m), 5) for m in measured],
+                             **pixel_sigma(f, k, f["u_px"][k] - truth[None, :], f["v_px"][k])}
         levels["x_px"] = x.tolist()
     return {**run, **levels}
+
+
+def pixel_sigma(f, k: int, error_u: np.ndarray, error_v: np.ndarray, where: np.ndarray | None = None) -> dict:
+    """How a field file's per-pixel uncertainty (``sigma_u_px``, ``sigma_v_px`` of frame ``k``)
+    describes the pixels' errors (``where``: the pixels looked at): the RMS of error / sigma and
+    the share within 2 sigma, per axis, and the median sigma; {} where the file has none."""
+    if "sigma_u_px" not in f:
+        return {}
+    out = {}
+    for axis, error in (("u", error_u), ("v", error_v)):
+        sigma = f[f"sigma_{axis}_px"][k].astype(np.float64)
+        error = np.asarray(error, np.float64)
+        ok = np.isfinite(sigma) & np.isfinite(error) & (sigma > 0)
+        if where is not None:
+            ok &= where
+        if not ok.any():
+            return {}
+        z = error[ok] / sigma[ok]
+        out[f"pixel_z_rms_{axis}"] = float(np.sqrt(np.mean(z ** 2)))
+        out[f"pixel_within_2sigma_{axis}"] = float(np.mean(np.abs(z) < 2))
+        out[f"pixel_sigma_median_{axis}_px"] = float(np.median(sigma[ok]))
+    return out
 
 
 def sample3(method: str, work: Path) -> dict:
@@ -243,9 +267,14 @@ def star(name: str, method: str, work: Path) -> dict:
     with h5py.File(out.with_suffix(".h5"), "r") as f:
         x, y = f["x_px"][()], f["y_px"][()]
         v = f["v_px"][1].astype(np.float64)
+        # The per-pixel uncertainty against the errors where the period is over 100 px (the
+        # resolution's shortfall is small there; what is left is noise and the estimator's own).
+        period = period_of(x)
+        truth = 0.5 * np.cos(2 * np.pi * (y[:, None] - 250) / period[None, :])
+        sigmas = pixel_sigma(f, 1, f["u_px"][1], v - truth, where=((y >= 40) & (y <= 460))[:, None]
+                             & (period > 100)[None, :])
     rows = (y >= 40) & (y <= 460)
     v, y = v[rows], y[rows]
-    period = period_of(x)
     shape = np.cos(2 * np.pi * (y[:, None] - 250) / period[None, :])
     ok = np.isfinite(v)
     amplitude = np.nansum(np.where(ok, v * shape, 0), axis=0) / np.sum(np.where(ok, shape**2, 0), axis=0)
@@ -260,8 +289,11 @@ def star(name: str, method: str, work: Path) -> dict:
         resolution = float(period[k])
     long = period > 100
     residual = v[:, long] - amplitude[None, long] * shape[:, long]
-    return {**run, "resolution_px": resolution, "noise_px": float(np.nanstd(residual)),
-            "amplitude_long_px": float(np.nanmedian(amplitude[long]))}
+    inner = np.arange(20, len(x) - 20, STAR_CURVE_STEP)  # the running mean's full columns
+    return {**run, **sigmas, "resolution_px": resolution, "noise_px": float(np.nanstd(residual)),
+            "amplitude_long_px": float(np.nanmedian(amplitude[long])),
+            "curve_period_px": [round(float(p), 3) for p in period[inner]],
+            "curve_amplitude_px": [round(float(a), 5) for a in smooth[inner]]}
 
 
 def table(results: dict, methods: list[str]) -> str:
@@ -285,7 +317,30 @@ def table(results: dict, methods: list[str]) -> str:
             lines.append(f"| {method} | {' | '.join(cells)} |")
     if results.get("sample12"):
         lines += [""] * bool(lines) + _table_s12(results["sample12"], methods)
+    lines += _table_pixel_sigma(results, methods)
     return "\n".join(lines)
+
+
+def _table_pixel_sigma(results: dict, methods: list[str]) -> list[str]:
+    """Per method with a per-pixel uncertainty: each known field's error over it, u / v."""
+    cases = [("sample14", None, level) for level in S14_LEVELS] + [("stars", name, None) for name in STARS]
+    lines = []
+    for method in methods:
+        cells = []
+        for key, name, level in cases:
+            r = results.get(key, {})
+            r = (r.get(name, {}) if name else r).get(method) or {}
+            r = r.get(level, {}) if level else r
+            cells.append(f"{r['pixel_z_rms_u']:.2f} / {r['pixel_z_rms_v']:.2f}, "
+                         f"{100 * r['pixel_within_2sigma_u']:.0f} / {100 * r['pixel_within_2sigma_v']:.0f} %"
+                         if "pixel_z_rms_u" in r else "-")
+        if any(cell != "-" for cell in cells):
+            lines.append(f"| {method} | {' | '.join(cells)} |")
+    if not lines:
+        return []
+    header = ["S14 " + level for level in S14_LEVELS] + [f"{name} (periods > 100 px)" for name in STARS]
+    return ["", "| method (per-pixel sigma: error / sigma RMS u / v, share within 2 sigma) | "
+            + " | ".join(header) + " |", "| --- | " + " | ".join("---" for _ in header) + " |", *lines]
 
 
 def _table_s12(s12: dict, methods: list[str]) -> list[str]:
@@ -354,6 +409,45 @@ def figure(results: dict, methods: list[str], path: Path) -> None:
     plt.close(fig)
 
 
+def figure_stars(results: dict, methods: list[str], path: Path) -> None:
+    """Each Star's amplitude read (41-column running mean, over 0.5 px) against the period,
+    per method, with the 10 % band that defines the spatial resolution."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    stars = results.get("stars", {})
+    names = [name for name in STARS if stars.get(name)]
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.8), sharey=True, layout="constrained",
+                             squeeze=False)
+    for ax, name in zip(axes[0], names, strict=True):
+        for method in methods:
+            r = stars[name].get(method)
+            if r and "curve_period_px" in r:
+                ax.plot(r["curve_period_px"], np.asarray(r["curve_amplitude_px"]) / 0.5, lw=1,
+                        label=f"{method} ({r['resolution_px']:.0f} px)" if np.isfinite(r["resolution_px"])
+                        else f"{method} (none)")
+        ax.axhspan(1 - WITHIN, 1 + WITHIN, color="grey", alpha=0.15)
+        ax.axhline(1.0, color="black", lw=0.8)
+        ax.set_xscale("log")
+        ticks = [t for t in (10, 20, 50, 100, 200, 300) if t <= max(r["curve_period_px"][-1] for r in
+                                                                     stars[name].values() if "curve_period_px" in r)]
+        ax.set_xticks(ticks, [str(t) for t in ticks])
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set_xlabel("period of the cosine (px)")
+        ax.set_title(name)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7, loc="lower right")
+    axes[0][0].set_ylabel("amplitude read / 0.5 px")
+    fig.suptitle("DIC Challenge 2.0 Stars: amplitude read against the period (grey: within 10 %; "
+                 "the legend's resolution: from there on)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def figure12(results: dict, methods: list[str], path: Path) -> None:
     """Per frame, each method's RMS difference from DICe's solution on Sample 12, u and v."""
     import matplotlib
@@ -387,6 +481,7 @@ def main() -> None:
     parser.add_argument("--samples", default="sample14,sample3,sample12",
                         help="which of sample14, sample3, sample12 to run (default: all)")
     parser.add_argument("--figure12", default=str(ROOT / "results" / "figures" / "dic_challenge_sample12.png"))
+    parser.add_argument("--figure-stars", default=str(ROOT / "results" / "figures" / "dic_challenge_stars.png"))
     parser.add_argument("--json", default=str(ROOT / "results" / "bench_dic_challenge.json"))
     parser.add_argument("--figure", default=str(ROOT / "results" / "figures" / "dic_challenge_sample14.png"))
     parser.add_argument("--out", default=str(ROOT / "results" / "bench_dic_challenge.md"), help="the table")
@@ -430,6 +525,8 @@ def main() -> None:
         figure(results, shown, Path(args.figure))
     if results.get("sample12"):
         figure12(results, shown, Path(args.figure12))
+    if any(results.get("stars", {}).values()):
+        figure_stars(results, shown, Path(args.figure_stars))
 
 
 if __name__ == "__main__":

@@ -50,7 +50,8 @@ _DESCRIPTION = {
     "frame_valid": "the CSV's valid flag per frame and region",
     "sigma_dx_px": "the CSV's standard uncertainty of the region's mean dx",
     "sigma_dy_px": "the same for dy", "sigma_px": "sqrt(sigma_dx_px^2 + sigma_dy_px^2)",
-    "sigma_u_px": "standard uncertainty of u_px at each pixel where the method measured it on its own "
+    "sigma_u_px": "standard uncertainty from the images' noise of the pixel's reading in u_px (not of the "
+                  "reference offset or camera motion removed), where the method measured the pixel on its own "
                   "(deepflow: a deforming region's windowed step); NaN elsewhere",
     "sigma_v_px": "the same for v_px",
     "offset_u_px": "the reference's own reading removed from u_px (eq. 10-12's offset)",
@@ -181,17 +182,25 @@ class FieldStream:
 
     # -- called by the driver's threads (pure) and its collector (in frame order) --
 
-    def cut(self, flow: np.ndarray, dx: np.ndarray, dy: np.ndarray, sigma: np.ndarray | None = None
+    def cut(self, flow: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+            sigma: list[tuple[np.ndarray, ...]] | None = None
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
         """A frame's displacement at the box's mask pixels (1-D, raster order) from a method's
         ``flow``: camera motion removed, the POIs' values the readings ``dx``, ``dy`` themselves;
-        and their standard uncertainty from the method's per-pixel ``sigma`` (like the flow;
-        None: the method has none in this frame)."""
+        and their standard uncertainty from the method's ``sigma``, ``(rows, cols, sigma_u,
+        sigma_v)`` of pixels of the flow (NaN at the others; None: the method has none in this
+        frame)."""
         rows = self._rows + self.box.top - self.flow_origin[1]
         cols = self._cols + self.box.left - self.flow_origin[0]
         su = sv = None
-        if sigma is not None:
-            su, sv = sigma[rows, cols, 0].astype(np.float32), sigma[rows, cols, 1].astype(np.float32)
+        if sigma:
+            su, sv = np.full(self._rows.size, np.nan, np.float32), np.full(self._rows.size, np.nan, np.float32)
+            for at_rows, at_cols, values_u, values_v in sigma:
+                at = self._order[np.asarray(at_rows) + self.flow_origin[1] - self.box.top,
+                                 np.asarray(at_cols) + self.flow_origin[0] - self.box.left]
+                if np.any(at < 0):
+                    raise ValueError("a pixel with an uncertainty lies outside the field's mask")
+                su[at], sv[at] = values_u, values_v
         u = flow[rows, cols, 0].astype(np.float64)
         v = flow[rows, cols, 1].astype(np.float64)
         background = self._background

@@ -231,6 +231,8 @@ class _PoiReadout:
         self._points = poi_xy.astype(np.float64)
 
     def measure(self, method: Any, current: np.ndarray) -> _FrameResult:
+        if self._field is not None:
+            method.want_field_sigma = True  # the pixels' own uncertainty, where the method has one
         flow = method.calc(self.reference, current)
         dx = flow[self._rows, self._columns, 0].astype(np.float32)
         dy = flow[self._rows, self._columns, 1].astype(np.float32)

@@ -76,9 +76,10 @@ class DenseMethod(Method):
     after each :meth:`calc` reads :attr:`last_sigmas_px`, the method's own standard
     uncertainty ``(sigma_x, sigma_y)`` of the mean displacement over each region's POIs, by
     the region's label in the mask (1 for a bool mask); a region it lacks (or None): the
-    driver estimates one. A method that measures pixels on their own also leaves
-    :attr:`last_field_sigma`, each pixel's standard uncertainty ``(sigma_u, sigma_v)`` in the
-    flow's pixels (NaN where it has none; None: none at all), for the field file.
+    driver estimates one. A method that measures pixels on their own also leaves, where the
+    driver sets :attr:`want_field_sigma` (a run writing a field file), :attr:`last_field_sigma`:
+    a list of ``(rows, cols, sigma_u, sigma_v)``, pixels of the flow and their standard
+    uncertainty (None: none in this frame).
 
     Parameters
     ----------
@@ -92,7 +93,8 @@ class DenseMethod(Method):
     kind = "dense"
     parameters: tuple[Param, ...] = (CROP,)
     last_sigmas_px: dict[int, tuple[float, float]] | None = None
-    last_field_sigma: np.ndarray | None = None  # (H, W, 2) float32 like the flow, px
+    last_field_sigma: list[tuple[np.ndarray, ...]] | None = None
+    want_field_sigma: bool = False
     # Set by the driver (one event for all its jobs): set when the run is stopping. A method
     # whose frame takes long calls :meth:`check_stop` between its stages, so that Ctrl-C does
     # not wait for the frames the jobs are measuring.

@@ -282,3 +282,41 @@ def test_the_default_gives_a_deforming_regions_pixels_their_uncertainty(clip, tm
     assert (tmp_path / "pic_sigma.png").stat().st_size > 1000
     assert main(["field-plot", str(baseline.with_suffix(".h5")), "--out", str(tmp_path / "base")]) == 0
     assert (tmp_path / "base_map.png").is_file() and not (tmp_path / "base_sigma.png").exists()
+
+
+def test_the_pixels_uncertainty_lands_on_them_when_the_work_area_is_cut(tmp_path, monkeypatch) -> None:
+    """A deforming speckle in a frame wider than the region's window (the default solves a
+    window about the POIs, 256 px beyond them, whose corner is not the frame's): the uncertainty
+    is written at the region's pixels, every one of them."""
+    from scipy import ndimage
+
+    height, width = 160, 1400
+    rng = np.random.default_rng(5)
+    texture = ndimage.gaussian_filter(rng.standard_normal((2 * height, 2 * width)), 3.0)
+    texture = 128 + 70 * texture / texture.std()
+    ys, xs = np.mgrid[0:2 * height, 0:2 * width] / 2.0
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k in range(4):
+        shift = 0.5 * k / 3 * np.sin(2 * np.pi * xs / 80.0)
+        image = ndimage.map_coordinates(texture, [2 * ys, 2 * (xs - shift)], order=3, mode="mirror")
+        image = image.reshape(height, 2, width, 2).mean(axis=(1, 3))
+        cv2.imwrite(str(folder / f"frame_{k:03d}.png"), np.clip(np.rint(image), 0, 255).astype(np.uint8))
+    out = tmp_path / "cut"
+    from flow.field import stream
+
+    origins = []
+    append = stream.FieldStream.append
+    monkeypatch.setattr(stream.FieldStream, "append",
+                        lambda self, *a: (origins.append(self.flow_origin), append(self, *a))[1])
+    mask = np.zeros((height, width), np.uint8)
+    mask[90:138, 600:664] = 255
+    cv2.imwrite(str(tmp_path / "mask.png"), mask)
+    assert main(["track", str(folder), "--fps", "10", "--mask", str(tmp_path / "mask.png"), "--no-progress",
+                 "--out", str(out.with_suffix(".csv")), "--field", str(out.with_suffix(".h5"))]) == 0
+    assert origins and all(origin != (0, 0) for origin in origins)  # the window is cut out of the frame
+    with h5py.File(out.with_suffix(".h5"), "r") as f:
+        assert f["x_px"][0] == 600 and f["y_px"][0] == 90
+        for frame in (2, 3):
+            sigma = f["sigma_u_px"][frame]
+            assert np.isfinite(sigma).all() and 0 < np.median(sigma) < 0.05, frame

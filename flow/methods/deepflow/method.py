@@ -1172,14 +1172,13 @@ class DeepFlow(DenseMethod):
         if reason == "dense_deforms":
             # The dense field read, its small deformations' shortfall taken off (see localfit),
             # and each POI's own uncertainty for the field file.
-            u, v, sigma_u, sigma_v = refine_locally(reference, current, region.rows, region.cols, dense_u,
-                                                    dense_v, with_sigma=True)
-            flow[region.rows, region.cols, 0] = u
-            flow[region.rows, region.cols, 1] = v
-            if self.last_field_sigma is None or self.last_field_sigma.shape[:2] != flow.shape[:2]:
-                self.last_field_sigma = np.full(flow.shape[:2] + (2,), np.nan, np.float32)
-            self.last_field_sigma[region.rows, region.cols, 0] = sigma_u
-            self.last_field_sigma[region.rows, region.cols, 1] = sigma_v
+            refined = refine_locally(reference, current, region.rows, region.cols, dense_u, dense_v,
+                                     with_sigma=self.want_field_sigma)
+            flow[region.rows, region.cols, 0] = refined[0]
+            flow[region.rows, region.cols, 1] = refined[1]
+            if self.want_field_sigma:
+                self.last_field_sigma = (self.last_field_sigma or []) + [
+                    (region.rows, region.cols, refined[2].astype(np.float32), refined[3].astype(np.float32))]
         if model == "outline" and region.along_texture:
             self.counts["along_texture"] += 1
         if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
