@@ -432,8 +432,8 @@ def figure_stars(results: dict, methods: list[str], path: Path) -> None:
         ax.axhspan(1 - WITHIN, 1 + WITHIN, color="grey", alpha=0.15)
         ax.axhline(1.0, color="black", lw=0.8)
         ax.set_xscale("log")
-        ticks = [t for t in (10, 20, 50, 100, 200, 300) if t <= max(r["curve_period_px"][-1] for r in
-                                                                     stars[name].values() if "curve_period_px" in r)]
+        longest = max((r["curve_period_px"][-1] for r in stars[name].values() if "curve_period_px" in r), default=300)
+        ticks = [t for t in (10, 20, 50, 100, 200, 300) if t <= longest]
         ax.set_xticks(ticks, [str(t) for t in ticks])
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("period of the cosine (px)")

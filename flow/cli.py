@@ -467,7 +467,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     claims = _claims(args)
-    before: dict[Path, tuple[int, int] | None] = {path: None for path in claims}
+    before = _stamps(claims)  # again under the claim (below); an interruption before it has these
     try:
         with claimed(claims) as existing:
             before = _stamps(claims)  # under the claim: no other run writes them now

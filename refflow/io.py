@@ -60,23 +60,26 @@ def atomic_paths(*paths: str | os.PathLike[str]) -> Iterator[list[Path]]:
             temporaries.append(_temporary_beside(final))
         yield list(temporaries)
         for tmp, final in zip(temporaries, finals, strict=True):
-            renaming = (final, os.stat(tmp).st_ino)
+            found = os.lstat(tmp)
+            renaming = (final, (found.st_dev, found.st_ino))
             _publish(tmp, final)
             published.append(final)
             renaming = None
     except BaseException as err:
-        for tmp in temporaries:
-            tmp.unlink(missing_ok=True)
         # Interrupted between two renames: take back the ones already made, so the set
         # stays all-or-nothing (their previous versions were replaced already), the one whose
-        # rename had just happened when the interruption came included (its inode is the
-        # temporary's; an earlier version of the file still there is left alone).
+        # rename had just happened when the interruption came included: the file is the
+        # temporary itself (device and inode, checked while the temporary's inode is still
+        # held); an earlier version of the file still there is left alone.
         if renaming is not None and renaming[0] not in published:
             try:
-                if os.stat(renaming[0]).st_ino == renaming[1]:
+                found = os.lstat(renaming[0])
+                if (found.st_dev, found.st_ino) == renaming[1]:
                     published.append(renaming[0])
             except OSError:
                 pass
+        for tmp in temporaries:
+            tmp.unlink(missing_ok=True)
         for final in published:
             final.unlink(missing_ok=True)
         # A temporary's name means nothing to the user: name the file it stood for.

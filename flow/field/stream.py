@@ -195,9 +195,13 @@ class FieldStream:
         su = sv = None
         if sigma:
             su, sv = np.full(self._rows.size, np.nan, np.float32), np.full(self._rows.size, np.nan, np.float32)
+            height, width = self._order.shape
             for at_rows, at_cols, values_u, values_v in sigma:
-                at = self._order[np.asarray(at_rows) + self.flow_origin[1] - self.box.top,
-                                 np.asarray(at_cols) + self.flow_origin[0] - self.box.left]
+                box_rows = np.asarray(at_rows) + self.flow_origin[1] - self.box.top
+                box_cols = np.asarray(at_cols) + self.flow_origin[0] - self.box.left
+                if np.any((box_rows < 0) | (box_rows >= height) | (box_cols < 0) | (box_cols >= width)):
+                    raise ValueError("a pixel with an uncertainty lies outside the field's box")
+                at = self._order[box_rows, box_cols]
                 if np.any(at < 0):
                     raise ValueError("a pixel with an uncertainty lies outside the field's mask")
                 su[at], sv[at] = values_u, values_v

@@ -155,3 +155,20 @@ def test_ctrl_c_while_the_program_exits_changes_nothing() -> None:
     handler = signal.getsignal(signal.SIGINT)
     assert main(["methods"]) == 0
     assert signal.getsignal(signal.SIGINT) is handler
+
+
+def test_ctrl_c_before_the_run_does_not_take_an_earlier_output_for_its_own(slow_clip, tmp_path) -> None:
+    """Ctrl-C while the run takes hold of its outputs: an output left by an earlier run is not
+    this run's, and the message says nothing was written (it said "complete" for a while)."""
+    out = tmp_path / "bar.csv"
+    out.write_text("earlier")
+    code = ("import sys, flow.cli as cli\n"
+            "def interrupted(paths, **kwargs):\n"
+            "    raise KeyboardInterrupt\n"
+            "cli.claimed = interrupted\n"
+            "sys.exit(cli.main())\n")
+    run = _python(code, "track", str(slow_clip["video"]), "--mask", str(slow_clip["mask"]), "--mm-per-px", "1",
+                  "--out", str(out), "--no-progress")
+    assert run.returncode == 130, run.stderr[-2000:]
+    assert "interrupted; no output written" in run.stderr, run.stderr[-2000:]
+    assert out.read_text() == "earlier"

@@ -382,3 +382,26 @@ def test_atomic_paths_takes_back_a_rename_interrupted_as_it_returns(tmp_path, mo
     assert left == ([] if interrupted_at == 2 else ["c.csv"]), left
     if interrupted_at < 2:
         assert finals[2].read_text() == "earlier"
+
+
+def test_atomic_paths_keeps_an_earlier_file_whose_replacement_was_interrupted(tmp_path, monkeypatch):
+    """Ctrl-C before the last rename (its chmod): the earlier version of that file stays, the
+    files of the set already renamed are taken back, no temporary is left."""
+    import refflow.io as rio
+    from refflow.io import atomic_paths
+
+    finals = [tmp_path / "a.json", tmp_path / "c.csv"]
+    finals[1].write_text("earlier")
+    publish = rio._publish
+
+    def interrupted(tmp, final):
+        if final.name == "c.csv":
+            raise KeyboardInterrupt
+        publish(tmp, final)
+
+    monkeypatch.setattr(rio, "_publish", interrupted)
+    with pytest.raises(KeyboardInterrupt), atomic_paths(*finals) as temporaries:
+        for tmp in temporaries:
+            tmp.write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.csv"]
+    assert finals[1].read_text() == "earlier"
