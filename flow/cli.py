@@ -371,6 +371,10 @@ def build_parser() -> argparse.ArgumentParser:
 def _claims(args: argparse.Namespace) -> list[Path]:
     """The files a command writes that a second run at the same time must not write too: its
     outputs, and the sidecar of a measurement (``--out a`` and ``--out a.csv`` share ``a.json``)."""
+    if args.command == "field-plot":  # --out is a prefix: the pictures it always writes
+        from flow.field.plot import outputs_of
+
+        return outputs_of(args.out, args.movie, args.hz) if isinstance(args.out, str) and args.out else []
     written = ("out", "raw_tracks", "save_poi_tracks") + (("field",) if args.command in ("track", "merge") else ())
     names = [getattr(args, option, None) for option in written]
     paths = [Path(name) for name in names if isinstance(name, str) and name]

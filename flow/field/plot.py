@@ -253,6 +253,15 @@ def _check_hz(field: Field, hz: float) -> None:
                          f"{1 / step:.4g} frames per second: pick a lower frequency")
 
 
+def outputs_of(prefix: str, movie_format: str = "gif", hz: float | None = None) -> list[Path]:
+    """The pictures ``plot`` writes whatever the file holds (``PREFIX_sigma.png`` comes on top
+    where it has each pixel's uncertainty)."""
+    outputs = [Path(f"{prefix}_map.png"), Path(f"{prefix}_field.{movie_format}")]
+    if hz is not None:
+        outputs.append(Path(f"{prefix}_ods.png"))
+    return outputs
+
+
 def plot(path: str, prefix: str, *, frame: int | None = None, component: str | None = None, hz: float | None = None,
          movie_format: str = "gif", fps: float = 10.0) -> list[Path]:
     """Write the map, the movie and (with ``hz``) the deflection shape; returns the files."""
@@ -264,9 +273,7 @@ def plot(path: str, prefix: str, *, frame: int | None = None, component: str | N
         raise InputError(f"--movie {movie_format!r} is not gif or mp4")
     if not (np.isfinite(fps) and fps > 0):
         raise InputError(f"--movie-fps {fps:g} must be > 0")
-    outputs = [Path(f"{prefix}_map.png"), Path(f"{prefix}_field.{movie_format}")]
-    if hz is not None:
-        outputs.append(Path(f"{prefix}_ods.png"))
+    outputs = outputs_of(prefix, movie_format, hz)
     with read_field(path) as field:
         check_outputs(outputs, [("the field file", Path(path))], option="--out")
         frames = field["frame"][()]

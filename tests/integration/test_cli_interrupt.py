@@ -172,3 +172,28 @@ def test_ctrl_c_before_the_run_does_not_take_an_earlier_output_for_its_own(slow_
     assert run.returncode == 130, run.stderr[-2000:]
     assert "interrupted; no output written" in run.stderr, run.stderr[-2000:]
     assert out.read_text() == "earlier"
+
+
+def test_ctrl_c_after_field_plot_published_its_pictures_says_so(tmp_path) -> None:
+    """field-plot's --out is a prefix: the run holds (and reports) the pictures it writes."""
+    sys.path.insert(0, str(ROOT / "tests" / "unit"))
+    import _sine_field as sine
+
+    from flow.cli import main
+
+    frames = sine.write_clip(tmp_path / "frames", n_frames=6)
+    field = tmp_path / "f.h5"
+    assert main(["track", str(frames), "--fps", str(sine.FPS), "--method", "farneback", "--rect", "20,16,120,64",
+                 "--no-progress", "--out", str(tmp_path / "f.csv"), "--field", str(field)]) == 0
+    code = ("import sys, flow.field.plot as plot\n"
+            "draw = plot.cmd_field_plot\n"
+            "def interrupted_after(args):\n"
+            "    draw(args)\n"
+            "    raise KeyboardInterrupt\n"
+            "plot.cmd_field_plot = interrupted_after\n"
+            "import flow.cli as cli\n"
+            "sys.exit(cli.main())\n")
+    run = _python(code, "field-plot", str(field), "--out", str(tmp_path / "pic"))
+    assert run.returncode == 130, run.stderr[-2000:]
+    assert "its outputs had been written, complete" in run.stderr and "pic_map.png" in run.stderr, run.stderr
+    assert (tmp_path / "pic_map.png").is_file() and (tmp_path / "pic_field.gif").is_file()
