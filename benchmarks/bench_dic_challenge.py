@@ -243,13 +243,18 @@ def against_dice(x_px: np.ndarray, y_px: np.ndarray, u: np.ndarray, v: np.ndarra
     return out
 
 
-def sample12(method: str, work: Path) -> dict:
+def sample12_mask_file(path: Path) -> Path:
+    """:func:`sample12_mask` over Sample 12's reference, written as a PNG at ``path``."""
     import cv2
 
-    frames = frames_folder(S12, S12_FRAMES, work / "s12")
     reference = cv2.imread(str(S12 / S12_FRAMES[0]), cv2.IMREAD_GRAYSCALE)
-    mask = work / "s12_mask.png"
-    cv2.imwrite(str(mask), sample12_mask(reference.shape).astype(np.uint8) * 255)
+    cv2.imwrite(str(path), sample12_mask(reference.shape).astype(np.uint8) * 255)
+    return path
+
+
+def sample12(method: str, work: Path) -> dict:
+    frames = frames_folder(S12, S12_FRAMES, work / "s12")
+    mask = sample12_mask_file(work / "s12_mask.png")
     out = work / f"s12_{method}"
     run = track(frames, method, None, out, mask=mask)
     per_frame = []
@@ -308,14 +313,10 @@ def sample12_replica_frames(into: Path) -> Path:
 def sample12_replica(method: str, work: Path) -> dict:
     """Each method on the replica (known fields): per frame the mean and RMS of its field's
     error over DICe's region, u and v."""
-    import cv2
-
     frames = work / "s12_replica"
     if not frames.is_dir():
         sample12_replica_frames(frames)
-    reference = cv2.imread(str(S12 / S12_FRAMES[0]), cv2.IMREAD_GRAYSCALE)
-    mask = work / "s12_mask.png"
-    cv2.imwrite(str(mask), sample12_mask(reference.shape).astype(np.uint8) * 255)
+    mask = sample12_mask_file(work / "s12_mask.png")
     out = work / f"s12r_{method}"
     run = track(frames, method, None, out, mask=mask)
     per_frame = []

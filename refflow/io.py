@@ -54,7 +54,8 @@ def atomic_paths(*paths: str | os.PathLike[str]) -> Iterator[list[Path]]:
         raise ValueError(f"atomic_paths got the same path twice: {[str(p) for p in finals]}")
     temporaries: list[Path] = []
     published: list[Path] = []
-    renaming: tuple[Path, int] | None = None  # the file being renamed and its temporary's inode
+    # The file being renamed and its temporary's (device, inode).
+    renaming: tuple[Path, tuple[int, int]] | None = None
     try:
         for final in finals:
             temporaries.append(_temporary_beside(final))

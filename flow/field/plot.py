@@ -95,26 +95,32 @@ def _extent(field: Field) -> list[float]:
     return [x[0] - 0.5, x[-1] + 0.5, y[-1] + 0.5, y[0] - 0.5]
 
 
-def map_figure(field: Field, row: int, component: str, limit: float, path: Path) -> None:
-    """The field at frame ``row`` over the reference image, with a colour bar."""
+def _overlay_figure(field: Field, values: np.ndarray, cmap: str, vmin: float, vmax: float, label: str,
+                    title: str, path: Path) -> None:
+    """``values`` over the box's pixels drawn over the reference image, with a colour bar."""
     import matplotlib.pyplot as plt
 
-    values = _component(field, row, component)
     height, width = values.shape
     size = (min(12.0, max(5.0, width / 100)) + 1.5, min(9.0, max(2.5, height / 100)) + 1.0)
     fig, ax = plt.subplots(figsize=size, dpi=110, layout="constrained")
     extent = _extent(field)
     ax.imshow(_backdrop(field), cmap="gray", vmin=0, vmax=1, extent=extent, interpolation="nearest")
-    cmap, vmin = ("viridis", 0.0) if component == "magnitude" else ("RdBu_r", -limit)
-    shown = ax.imshow(np.ma.masked_invalid(values), cmap=cmap, vmin=vmin, vmax=limit, alpha=0.85, extent=extent,
+    shown = ax.imshow(np.ma.masked_invalid(values), cmap=cmap, vmin=vmin, vmax=vmax, alpha=0.85, extent=extent,
                       interpolation="nearest")
-    fig.colorbar(shown, ax=ax, label=_label(component), shrink=0.9)
+    fig.colorbar(shown, ax=ax, label=label, shrink=0.9)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
-    ax.set_title(f"{_label(component)} at frame {int(field['frame'][row])} "
-                 f"(t = {float(field['time_s'][row]):.4g} s)")
+    ax.set_title(title)
     fig.savefig(path)
     plt.close(fig)
+
+
+def map_figure(field: Field, row: int, component: str, limit: float, path: Path) -> None:
+    """The field at frame ``row`` over the reference image, with a colour bar."""
+    cmap, vmin = ("viridis", 0.0) if component == "magnitude" else ("RdBu_r", -limit)
+    _overlay_figure(field, _component(field, row, component), cmap, vmin, limit, _label(component),
+                    f"{_label(component)} at frame {int(field['frame'][row])} "
+                    f"(t = {float(field['time_s'][row]):.4g} s)", path)
 
 
 def _colour_frame(values: np.ndarray, backdrop: np.ndarray, component: str, limit: float,
@@ -310,22 +316,10 @@ def _pixel_sigma(field: Field, row: int) -> np.ndarray | None:
 
 def sigma_figure(field: Field, row: int, sigma: np.ndarray, path: Path) -> None:
     """Each pixel's standard uncertainty at frame ``row`` over the reference image."""
-    import matplotlib.pyplot as plt
-
-    height, width = sigma.shape
-    size = (min(12.0, max(5.0, width / 100)) + 1.5, min(9.0, max(2.5, height / 100)) + 1.0)
-    fig, ax = plt.subplots(figsize=size, dpi=110, layout="constrained")
-    extent = _extent(field)
-    ax.imshow(_backdrop(field), cmap="gray", vmin=0, vmax=1, extent=extent, interpolation="nearest")
     top = float(np.percentile(sigma[np.isfinite(sigma)], LIMIT_PERCENTILE)) or 1e-3
-    shown = ax.imshow(np.ma.masked_invalid(sigma), cmap="magma", vmin=0.0, vmax=top, alpha=0.85, extent=extent,
-                      interpolation="nearest")
-    fig.colorbar(shown, ax=ax, label="sigma of the displacement, px", shrink=0.9)
-    ax.set_xlabel("x (px)")
-    ax.set_ylabel("y (px)")
-    ax.set_title(f"sigma (noise) at frame {int(field['frame'][row])}, median {float(np.nanmedian(sigma)):.2g} px")
-    fig.savefig(path)
-    plt.close(fig)
+    _overlay_figure(field, sigma, "magma", 0.0, top, "sigma of the displacement, px",
+                    f"sigma (noise) at frame {int(field['frame'][row])}, median {float(np.nanmedian(sigma)):.2g} px",
+                    path)
 
 
 def cmd_field_plot(args: argparse.Namespace) -> int:

@@ -118,18 +118,24 @@ def _python(code: str, *args: str, **kwargs) -> subprocess.CompletedProcess:
                           timeout=300, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kwargs)
 
 
+def _interrupted_after(module: str, command: str) -> str:
+    """A program that runs ``refflow`` with ``module.command`` (a command's function) followed
+    by a Ctrl-C: the command has done its work, published its outputs included."""
+    return (f"import sys, {module} as where\n"
+            f"original = where.{command}\n"
+            "def interrupted_after(args):\n"
+            "    original(args)\n"
+            "    raise KeyboardInterrupt\n"
+            f"where.{command} = interrupted_after\n"
+            "import flow.cli as cli\n"
+            "sys.exit(cli.main())\n")
+
+
 def test_ctrl_c_after_the_outputs_are_written_says_so(slow_clip, tmp_path) -> None:
     """Ctrl-C after the output set was published (while the run prints its line) leaves the
     files and says they are complete, not "no output written" (which it said, the files there)."""
     out = tmp_path / "bar.csv"
-    code = ("import sys, flow.cli as cli\n"
-            "track = cli.cmd_track\n"
-            "def interrupted_after(args):\n"
-            "    track(args)\n"
-            "    raise KeyboardInterrupt\n"
-            "cli.cmd_track = interrupted_after\n"
-            "sys.exit(cli.main())\n")
-    run = _python(code, "track", str(slow_clip["video"]), "--mask", str(slow_clip["mask"]), "--mm-per-px", "1",
+    run = _python(_interrupted_after("flow.cli", "cmd_track"), "track", str(slow_clip["video"]), "--mask", str(slow_clip["mask"]), "--mm-per-px", "1",
                   "--out", str(out), "--no-progress")
     assert run.returncode == 130, run.stderr[-2000:]
     assert "interrupted; its outputs had been written, complete" in run.stderr, run.stderr[-2000:]
@@ -185,15 +191,7 @@ def test_ctrl_c_after_field_plot_published_its_pictures_says_so(tmp_path) -> Non
     field = tmp_path / "f.h5"
     assert main(["track", str(frames), "--fps", str(sine.FPS), "--method", "farneback", "--rect", "20,16,120,64",
                  "--no-progress", "--out", str(tmp_path / "f.csv"), "--field", str(field)]) == 0
-    code = ("import sys, flow.field.plot as plot\n"
-            "draw = plot.cmd_field_plot\n"
-            "def interrupted_after(args):\n"
-            "    draw(args)\n"
-            "    raise KeyboardInterrupt\n"
-            "plot.cmd_field_plot = interrupted_after\n"
-            "import flow.cli as cli\n"
-            "sys.exit(cli.main())\n")
-    run = _python(code, "field-plot", str(field), "--out", str(tmp_path / "pic"))
+    run = _python(_interrupted_after("flow.field.plot", "cmd_field_plot"), "field-plot", str(field), "--out", str(tmp_path / "pic"))
     assert run.returncode == 130, run.stderr[-2000:]
     assert "its outputs had been written, complete" in run.stderr and "pic_map.png" in run.stderr, run.stderr
     assert (tmp_path / "pic_map.png").is_file() and (tmp_path / "pic_field.gif").is_file()

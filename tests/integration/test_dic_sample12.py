@@ -13,7 +13,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import cv2
 import h5py
 import numpy as np
 import pytest
@@ -33,10 +32,7 @@ MEAN_WITHIN_PX = 0.02
 @pytest.mark.skipif(not dic.S12.is_dir(), reason=f"shared test data absent: {dic.S12}")
 def test_the_default_field_on_real_images_agrees_with_dice(tmp_path) -> None:
     frames = dic.frames_folder(dic.S12, dic.S12_FRAMES, tmp_path / "frames")
-    reference = cv2.imread(str(dic.S12 / dic.S12_FRAMES[0]), cv2.IMREAD_GRAYSCALE)
-    region = dic.sample12_mask(reference.shape)
-    mask = tmp_path / "mask.png"
-    cv2.imwrite(str(mask), region.astype(np.uint8) * 255)
+    mask = dic.sample12_mask_file(tmp_path / "mask.png")
     out = tmp_path / "coupon.csv"
     assert main(["track", str(frames), "--fps", "1", "--mask", str(mask), "--no-progress", "--out", str(out),
                  "--field", str(out.with_suffix(".h5"))]) == 0

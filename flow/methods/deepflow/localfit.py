@@ -113,10 +113,10 @@ def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray,
     error = np.where(inside, warped - ref[r, c], 0.0)
     used = inside.astype(np.float64)
 
-    def window(values: np.ndarray) -> np.ndarray:
+    def window(values: np.ndarray, sigma_px: float = window_px) -> np.ndarray:
         grid = np.zeros(ref.shape, np.float32)
         grid[r, c] = values
-        return cv2.GaussianBlur(grid, (0, 0), window_px)[r, c]
+        return cv2.GaussianBlur(grid, (0, 0), sigma_px)[r, c]
 
     # Each window's least squares of the error on the motion and a brightness offset and gain
     # (auto-exposure, flicker: a 5 % gain left 0.036 px RMS on a 0.3 px shift without them).
@@ -135,13 +135,11 @@ def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray,
     good = (inside & (cover >= MIN_COVER) & (smaller >= MIN_GRADIENT ** 2 * np.maximum(cover, 1e-12))
             & (smaller >= MIN_ISOTROPY * (trace - smaller)))
     step = np.zeros((len(r), 2))
-    variance = np.full((len(r), 2), np.nan) if with_sigma else None
     if with_sigma:
+        variance = np.full((len(r), 2), np.nan)
         squares = window(used * error * error).astype(np.float64)
         # The window's squared weights (a Gaussian's square is the Gaussian of sigma / sqrt 2).
-        grid = np.zeros(ref.shape, np.float32)
-        grid[r, c] = used
-        weight2 = cv2.GaussianBlur(grid, (0, 0), window_px / np.sqrt(2.0))[r, c] / (4.0 * np.pi * window_px ** 2)
+        weight2 = window(used, window_px / np.sqrt(2.0)) / (4.0 * np.pi * window_px ** 2)
     chosen = np.flatnonzero(good)
     for start in range(0, chosen.size, SOLVE_CHUNK):
         part = chosen[start:start + SOLVE_CHUNK]
