@@ -47,6 +47,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import h5py
@@ -252,11 +253,14 @@ def sample12_mask_file(path: Path) -> Path:
     return path
 
 
+def _track_sample12(frames: Path, method: str, out: Path) -> dict:
+    """``refflow track`` over DICe's region of Sample 12 (the mask beside ``out``)."""
+    return track(frames, method, None, out, mask=sample12_mask_file(out.parent / "s12_mask.png"))
+
+
 def sample12(method: str, work: Path) -> dict:
-    frames = frames_folder(S12, S12_FRAMES, work / "s12")
-    mask = sample12_mask_file(work / "s12_mask.png")
     out = work / f"s12_{method}"
-    run = track(frames, method, None, out, mask=mask)
+    run = _track_sample12(frames_folder(S12, S12_FRAMES, work / "s12"), method, out)
     per_frame = []
     with h5py.File(out.with_suffix(".h5"), "r") as f:
         x, y = f["x_px"][()], f["y_px"][()]
@@ -316,9 +320,8 @@ def sample12_replica(method: str, work: Path) -> dict:
     frames = work / "s12_replica"
     if not frames.is_dir():
         sample12_replica_frames(frames)
-    mask = sample12_mask_file(work / "s12_mask.png")
     out = work / f"s12r_{method}"
-    run = track(frames, method, None, out, mask=mask)
+    run = _track_sample12(frames, method, out)
     per_frame = []
     with h5py.File(out.with_suffix(".h5"), "r") as f:
         x, y = f["x_px"][()], f["y_px"][()]
@@ -422,43 +425,45 @@ def _table_pixel_sigma(results: dict, methods: list[str]) -> list[str]:
             + " | ".join(header) + " |", "| --- | " + " | ".join("---" for _ in header) + " |", *lines]
 
 
-def _table_s12(s12: dict, methods: list[str]) -> list[str]:
-    lines = ["| method | field - DICe's solution, RMS u / v px (11 frames) | worst frame's RMS u / v | "
-             "largest mean u / v | DICe's points read | s per run |",
-             "| --- | --- | --- | --- | --- | --- |"]
+def _method_rows(per_method: dict, methods: list[str], columns: int,
+                 cells: Callable[[dict], list[str]]) -> list[str]:
+    """One table row per method that has a result: its ``cells``, or its error and ``columns - 1``
+    dashes."""
+    rows = []
     for method in methods:
-        r = s12.get(method)
+        r = per_method.get(method)
         if not r:
             continue
-        if "error" in r:
-            lines.append(f"| {method} | {r['error']} | - | - | - | - |")
-            continue
+        shown = [r["error"]] + ["-"] * (columns - 1) if "error" in r else cells(r)
+        rows.append(f"| {method} | {' | '.join(shown)} |")
+    return rows
+
+
+def _table_s12(s12: dict, methods: list[str]) -> list[str]:
+    def cells(r: dict) -> list[str]:
         frames = r["frames"]
-        cells = []
+        out = []
         for stat, pick in (("rms", lambda a: np.sqrt(np.mean(np.square(a)))), ("rms", np.max),
                            ("mean", lambda a: a[np.argmax(np.abs(a))])):
             u, v = (np.array([f[f"{stat}_{axis}_px"] for f in frames]) for axis in "uv")
-            cells.append(f"{pick(u):+.4f} / {pick(v):+.4f}" if stat == "mean" else f"{pick(u):.4f} / {pick(v):.4f}")
-        read = f"{min(f['read'] for f in frames)} of {frames[0]['points']}"
-        lines.append(f"| {method} | {' | '.join(cells)} | {read} | {r['wall_s']:.0f} |")
-    return lines
+            out.append(f"{pick(u):+.4f} / {pick(v):+.4f}" if stat == "mean" else f"{pick(u):.4f} / {pick(v):.4f}")
+        return [*out, f"{min(f['read'] for f in frames)} of {frames[0]['points']}", f"{r['wall_s']:.0f}"]
+
+    return ["| method | field - DICe's solution, RMS u / v px (11 frames) | worst frame's RMS u / v | "
+            "largest mean u / v | DICe's points read | s per run |",
+            "| --- | --- | --- | --- | --- | --- |", *_method_rows(s12, methods, 5, cells)]
 
 
 def _table_s12_replica(replica: dict, methods: list[str]) -> list[str]:
-    frames = ", ".join(str(f) for f in S12_REPLICA_FRAMES)
-    lines = [f"| method | Sample 12 replica (known affine fields of DICe's frames {frames}): error RMS u / v px, "
-             "mean over the frames | largest mean error u / v | s per run |", "| --- | --- | --- | --- |"]
-    for method in methods:
-        r = replica.get(method)
-        if not r:
-            continue
-        if "error" in r:
-            lines.append(f"| {method} | {r['error']} | - | - |")
-            continue
+    def cells(r: dict) -> list[str]:
         rms = [np.mean([f[f"rms_{axis}_px"] for f in r["frames"]]) for axis in "uv"]
         mean = [max((f[f"mean_{axis}_px"] for f in r["frames"]), key=abs) for axis in "uv"]
-        lines.append(f"| {method} | {rms[0]:.4f} / {rms[1]:.4f} | {mean[0]:+.4f} / {mean[1]:+.4f} | {r['wall_s']:.0f} |")
-    return lines
+        return [f"{rms[0]:.4f} / {rms[1]:.4f}", f"{mean[0]:+.4f} / {mean[1]:+.4f}", f"{r['wall_s']:.0f}"]
+
+    frames = ", ".join(str(f) for f in S12_REPLICA_FRAMES)
+    return [f"| method | Sample 12 replica (known affine fields of DICe's frames {frames}): error RMS u / v px, "
+            "mean over the frames | largest mean error u / v | s per run |", "| --- | --- | --- | --- |",
+            *_method_rows(replica, methods, 3, cells)]
 
 
 def _table_s14_s3(results: dict, methods: list[str]) -> list[str]:
