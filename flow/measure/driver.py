@@ -231,8 +231,6 @@ class _PoiReadout:
         self._points = poi_xy.astype(np.float64)
 
     def measure(self, method: Any, current: np.ndarray) -> _FrameResult:
-        if self._field is not None:
-            method.want_field_sigma = True  # the pixels' own uncertainty, where the method has one
         flow = method.calc(self.reference, current)
         dx = flow[self._rows, self._columns, 0].astype(np.float32)
         dy = flow[self._rows, self._columns, 1].astype(np.float32)
@@ -493,6 +491,8 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         source, pool.methods[0], reference, mask, poi_xy, background, undistort)
     if field is not None:
         field.flow_origin = (int(origin[0]), int(origin[1]))
+        for method in pool.methods:
+            method.want_field_sigma = True  # the pixels' own uncertainty, where the method has one
     pool.bind(reference, mask, read)
     readout = _PoiReadout(reference, poi_xy, regions, background, field)
     measure_chain = functools.partial(_measure_chain, pool, readout)
