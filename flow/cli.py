@@ -420,6 +420,18 @@ def _outcome(claims: list[Path], before: dict[Path, tuple[int, int] | None]) -> 
             f"{', '.join(map(str, others))}): run it again")
 
 
+def _signal_cause(err: BaseException) -> BaseException | None:
+    """The KeyboardInterrupt or Terminated at the end of ``err``'s chain of causes (None: none)."""
+    seen: set[int] = set()
+    cause = err.__cause__
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, (KeyboardInterrupt, Terminated)):
+            return cause
+        seen.add(id(cause))
+        cause = cause.__cause__
+    return None
+
+
 class Terminated(BaseException):
     """SIGTERM (what `timeout`, SLURM and `kill` send), raised where the run is, so that
     every ``finally`` and all-or-nothing output set cleans up as on Ctrl-C."""
@@ -493,6 +505,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"refflow {args.command}: interrupted; {_outcome(claims, before)}", file=sys.stderr)
         return 130
+    except SystemError as err:
+        # A signal's exception raised inside a compiled kernel (numba calls back into Python,
+        # e.g. to unpickle a constant) comes out as "returned a result with an exception set",
+        # once per kernel it crossed, the signal's own exception at the end of the causes (CI:
+        # Ctrl-C in DeepMatching's pooling ended the run with exit 1 and a traceback).
+        cause = _signal_cause(err)
+        if isinstance(cause, Terminated):
+            print(f"refflow {args.command}: terminated (SIGTERM); {_outcome(claims, before)}", file=sys.stderr)
+            return 143
+        if isinstance(cause, KeyboardInterrupt):
+            print(f"refflow {args.command}: interrupted; {_outcome(claims, before)}", file=sys.stderr)
+            return 130
+        raise
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -195,3 +195,26 @@ def test_ctrl_c_after_field_plot_published_its_pictures_says_so(tmp_path) -> Non
     assert run.returncode == 130, run.stderr[-2000:]
     assert "its outputs had been written, complete" in run.stderr and "pic_map.png" in run.stderr, run.stderr
     assert (tmp_path / "pic_map.png").is_file() and (tmp_path / "pic_field.gif").is_file()
+
+
+@pytest.mark.parametrize("signal_error, status, said", [("KeyboardInterrupt", 130, "interrupted"),
+                                                        ("cli.Terminated", 143, "terminated (SIGTERM)")])
+def test_a_signal_inside_a_compiled_kernel_is_still_the_signal(slow_clip, tmp_path, signal_error, status, said) -> None:
+    """A signal whose exception is raised while a numba kernel calls back into Python reaches the
+    run as a chain of SystemErrors ("returned a result with an exception set"), the signal's
+    exception at its end (CI saw Ctrl-C in DeepMatching's pooling end the run with exit 1 and a
+    traceback): the run ends as for the signal itself, its outputs not written."""
+    out = tmp_path / "bar.csv"
+    code = ("import sys, flow.cli as cli\n"
+            "def kernel(args):\n"
+            "    try:\n"
+            f"        raise SystemError('_numba_unpickle returned a result with an exception set') from {signal_error}()\n"
+            "    except SystemError as inner:\n"
+            "        raise SystemError('CPUDispatcher returned a result with an exception set') from inner\n"
+            "cli.cmd_track = kernel\n"
+            "sys.exit(cli.main())\n")
+    run = _python(code, "track", str(slow_clip["video"]), "--mask", str(slow_clip["mask"]), "--mm-per-px", "1",
+                  "--out", str(out), "--no-progress")
+    assert run.returncode == status, run.stderr[-2000:]
+    assert f"refflow track: {said}; no output written" in run.stderr and "Traceback" not in run.stderr, run.stderr
+    assert list(tmp_path.iterdir()) == []
