@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from flow.cli import main
+from flow.methods.deepflow import method as method_module
 from flow.methods.deepflow.method import CHAIN_LENGTH
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "unit"))
@@ -119,6 +120,30 @@ def test_tracked_frames_read_like_frames_measured_in_full(scene, whole, tmp_path
           f"px, mean {difference.mean():.4f} px")
     assert rmse[0] <= 1.1 * rmse[1] + 0.005
     assert difference.mean() < 0.02
+
+
+def test_tracked_frames_fitted_by_their_key_s_outline_model_read_as_by_every_model(
+        scene, whole, tmp_path, monkeypatch) -> None:
+    """A tracked frame's outline is fitted by its key's outline model (with the sharp one and
+    the whole-profile match) and by all five only where those agree worse than the key's
+    (TRACKED_SPREAD_RATIO): the readings are those of every model on every frame."""
+    monkeypatch.setattr(method_module, "TRACKED_SPREAD_RATIO", -np.inf)  # every model, every frame
+    every = _track(scene, tmp_path / "every.csv", "--mm-per-px", "0.5")
+    timings = [json.loads(p.with_suffix(".json").read_text())["timings"] for p in (whole, every)]
+    tracked = timings[1]["warm_frames"]
+    assert tracked >= FRAMES // 2 and timings[1]["outline_every_model"] == tracked
+    assert timings[0]["outline_every_model"] < 0.5 * tracked  # the shortcut serves most frames
+    a, b = _numbers(whole), _numbers(every)
+    assert np.array_equal(a[:, 6], b[:, 6])
+    clip = scene["clip"]
+    seen = (a[:, 6] == 1) & ~clip.occluded
+    true = clip.truth_px - clip.truth_px[0]
+    rmse = [float(np.sqrt(np.mean((r[seen, 2] - true[seen]) ** 2))) for r in (a, b)]
+    difference = np.abs(a[seen, 2] - b[seen, 2])
+    print(f"key's model first vs every model: RMSE {rmse[0]:.4f} / {rmse[1]:.4f} px, difference max "
+          f"{difference.max():.4f} px, mean {difference.mean():.5f} px")
+    assert rmse[0] <= rmse[1] + 0.001
+    assert difference.max() < 0.1 and difference.mean() < 0.003
 
 
 def test_frames_stand_alone_where_there_is_nothing_to_track(scene) -> None:

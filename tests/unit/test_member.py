@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flow.methods.deepflow.member import MemberEdges
+from flow.methods.deepflow.member import BLURS, MemberEdges
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _lowtex_clip import make_clip  # noqa: E402
@@ -63,6 +63,30 @@ def test_bending_member_mean_over_the_pois():
     # The uncertainty is not orders below the error (it is conservative on clean sharp edges:
     # the outline models' disagreement counts in full).
     assert 0.3 < np.median(sigma[1:]) / np.sqrt(np.mean((measured - truth)[1:] ** 2)) < 10.0
+
+
+def test_a_fit_by_some_outline_models_first_takes_the_rest_only_where_they_agree_worse():
+    # (Tracked frames fit their chain key's model, the sharp one and the whole-profile match
+    # first: see TRACKED_SPREAD_RATIO in flow.methods.deepflow.method.)
+    clip = make_clip(seed=6, frames=4, blur_px=0.6)
+    edges = MemberEdges.from_reference(clip.frames[0], clip.mask)
+    prior = np.zeros((edges.n_profiles, 2))
+    prior[:, 0 if clip.axis == "x" else 1] = 0.9 * (clip.truth_px[3] - clip.truth_px[0])
+    every = edges.fit(clip.frames[3], prior)
+    assert every.ok and every.every_model and every.model in range(len(BLURS) + 1)
+    other = (every.model + 1) % (len(BLURS) + 1)
+    key_systematic = np.array([0.01, 0.02])
+    alone = edges.fit(clip.frames[3], prior, first=(other,), systematic=key_systematic)
+    assert alone.ok and not alone.every_model and alone.model == other
+    assert alone.spread >= every.spread and np.array_equal(alone.systematic, key_systematic)
+    # Where the first models' best spread is above the limit, every model measures the frame:
+    # the fit is the one of all of them, its own models' disagreement included.
+    more = edges.fit(clip.frames[3], prior, first=(other,), enough_spread=0.0, systematic=key_systematic)
+    assert more.every_model and more.model == every.model
+    for name in ("params", "cov", "systematic"):
+        assert np.array_equal(getattr(more, name), getattr(every, name))
+    enough = edges.fit(clip.frames[3], prior, first=(every.model,), enough_spread=every.spread)
+    assert not enough.every_model and np.array_equal(enough.params, every.params)
 
 
 def test_arguments_are_checked():

@@ -165,6 +165,9 @@ class MemberFit:
     n_profiles: int
     scale: float  # robust spread of the standardised profile residuals (1 when the variances are right)
     systematic: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,) px, x and y
+    model: int = -1  # the outline model kept: an index of BLURS, or len(BLURS) (the profiles matched whole)
+    spread: float = float("nan")  # px: how well its outlines agree on one motion (robust)
+    every_model: bool = True  # every outline model measured the frame (see MemberEdges.fit)
 
 
 def context_px(params: MemberParams | None = None) -> int:
@@ -835,7 +838,8 @@ class MemberEdges:
     # -- per frame ---------------------------------------------------------------------------------
 
     def fit(self, current: np.ndarray, prior_uv: np.ndarray, *, gain: float | None = None,
-            camera: np.ndarray | None = None) -> MemberFit:
+            camera: np.ndarray | None = None, first: tuple[int, ...] | None = None,
+            enough_spread: float = float("inf"), systematic: np.ndarray | None = None) -> MemberFit:
         """Fit the member's motion in ``current`` (same shape as the reference).
 
         ``prior_uv``: ``(n_profiles, 2)`` dense-flow displacement at each profile's outline,
@@ -844,6 +848,12 @@ class MemberEdges:
         camera's own image motion (u, v) px at the member where known (see :meth:`_known`).
         Raises ``ValueError`` naming the shapes if ``current`` is not the reference's shape or
         ``prior_uv`` not ``(n_profiles, 2)`` (the numba kernels do not bounds-check).
+
+        Every outline model (:data:`BLURS`, then the whole-profile match: index
+        ``len(BLURS)``) measures the frame and the one whose outlines agree best is kept. With
+        ``first`` only those models measure it, and the rest only where the best of them has a
+        spread above ``enough_spread`` px; where the rest are not needed, the models'
+        disagreement is ``systematic`` (px, x and y: a chain key's, see :meth:`mean_sigma`).
         """
         check_shape("current", current, self.shape)
         if np.shape(prior_uv) != (self.n_profiles, 2):
@@ -865,63 +875,75 @@ class MemberEdges:
         start = self._coarse(cur, self.ref.edge + self._normal(pu, pv), gain)
         # The outline's blur is not known (lens focus, motion blur, a codec's smoothing and
         # ringing): each blur model measures the frame, and the one under which all the
-        # outlines agree best on one motion is kept.
-        results = []
-        for blur, ref in zip(BLURS, self.ref_by_blur, strict=True):
-            guess = start
-            result = None
-            for round_ in range(OUTLINE_ROUNDS):
-                found = self._fine(cur, guess, gain, blur)
-                if blur == 0.0 and round_ > 0:
-                    # Outlines that moved onto background the reference shows: from their area.
-                    known = self._known(cur, guess, gain, camera)
-                    use = np.isfinite(known.edge)
-                    for name in ("edge", "var", "contrast", "misfit"):
-                        getattr(found, name)[use] = getattr(known, name)[use]
-                usable = (np.isfinite(found.edge) & np.isfinite(ref.edge)
-                          & (np.abs(found.contrast) >= self.params.min_contrast))
-                if usable.sum() < self.params.min_profiles:
-                    result = None
-                    break
-                d = (found.edge - ref.edge)[usable]
-                var = found.var[usable] + ref.var[usable]
-                result = self._solve(d, usable, 1.0 / np.maximum(var, 1e-8), prior)
-                if result is None:
-                    break
-                theta = result.theta
-                guess = ref.edge + self.design @ theta
-            if result is not None:
-                results.append(result)
-        # The profiles matched whole (for outlines over a uniform background).
-        guess = start
-        result = None
-        for _ in range(2):
-            found = self._shift(cur, guess, gain)
-            usable = np.isfinite(found.edge) & np.isfinite(self.ref.edge)
-            if usable.sum() < self.params.min_profiles:
-                result = None
-                break
-            d = (found.edge - self.ref.edge)[usable]
-            result = self._solve(d, usable, 1.0 / np.maximum(found.var[usable], 1e-8), prior)
-            if result is None:
-                break
-            guess = self.ref.edge + self.design @ result.theta
-        if result is not None:
-            results.append(result)
+        # outlines agree best on one motion is kept; the profiles matched whole are the last
+        # model (for outlines over a uniform background).
+        every = range(len(BLURS) + 1)
+        fitted = {index: self._model_fit(index, cur, start, gain, camera, prior)
+                  for index in (every if first is None else sorted(set(first)))}
+        found = [r for r in fitted.values() if r is not None]
+        if first is not None and (not found or min(r.spread for r in found) > enough_spread):
+            fitted.update({index: self._model_fit(index, cur, start, gain, camera, prior)
+                           for index in every if index not in fitted})
+            systematic = None
+        results = [(index, fitted[index]) for index in sorted(fitted) if fitted[index] is not None]
         if not results:
             return empty
-        chosen = min(results, key=lambda r: r.spread)
+        index, chosen = min(results, key=lambda r: r[1].spread)
         best = chosen.spread
-        # What the plausible outline models (their outlines agree within PLAUSIBLE times the
-        # best one's spread) disagree on is a systematic error the fit's scatter cannot show:
-        # every profile of a straight outline shares its sub-pixel phase, so a model's
-        # phase-dependent error is common to all of them. Their spread enters the uncertainty.
-        plausible = [r for r in results if r.spread <= PLAUSIBLE * best + 1e-3]
-        gu, gv = self.poi_field.mean_gradient()
-        means = np.array([[gu @ r.theta, gv @ r.theta] for r in plausible])
-        systematic = means.std(axis=0) if len(plausible) > 1 else np.zeros(2)
+        if systematic is None:
+            # What the plausible outline models (their outlines agree within PLAUSIBLE times the
+            # best one's spread) disagree on is a systematic error the fit's scatter cannot
+            # show: every profile of a straight outline shares its sub-pixel phase, so a
+            # model's phase-dependent error is common to all of them. Their spread enters the
+            # uncertainty.
+            plausible = [r for _, r in results if r.spread <= PLAUSIBLE * best + 1e-3]
+            gu, gv = self.poi_field.mean_gradient()
+            means = np.array([[gu @ r.theta, gv @ r.theta] for r in plausible])
+            systematic = means.std(axis=0) if len(plausible) > 1 else np.zeros(2)
         return MemberFit(True, chosen.theta, self._covariance(chosen), chosen.used, self.n_profiles,
-                         chosen.scale, systematic)
+                         chosen.scale, np.asarray(systematic, np.float64), index, best,
+                         len(fitted) == len(every))
+
+    def _model_fit(self, index: int, cur: np.ndarray, start: np.ndarray, gain: float | None,
+                   camera: np.ndarray | None, prior: np.ndarray) -> _Solution | None:
+        """The motion as outline model ``index`` measures it (see :meth:`fit`): a blur model's
+        fine fit in OUTLINE_ROUNDS rounds, or the profiles matched whole in two."""
+        if index == len(BLURS):
+            guess = start
+            result = None
+            for _ in range(2):
+                found = self._shift(cur, guess, gain)
+                usable = np.isfinite(found.edge) & np.isfinite(self.ref.edge)
+                if usable.sum() < self.params.min_profiles:
+                    return None
+                d = (found.edge - self.ref.edge)[usable]
+                result = self._solve(d, usable, 1.0 / np.maximum(found.var[usable], 1e-8), prior)
+                if result is None:
+                    return None
+                guess = self.ref.edge + self.design @ result.theta
+            return result
+        blur, ref = BLURS[index], self.ref_by_blur[index]
+        guess = start
+        result = None
+        for round_ in range(OUTLINE_ROUNDS):
+            found = self._fine(cur, guess, gain, blur)
+            if blur == 0.0 and round_ > 0:
+                # Outlines that moved onto background the reference shows: from their area.
+                known = self._known(cur, guess, gain, camera)
+                use = np.isfinite(known.edge)
+                for name in ("edge", "var", "contrast", "misfit"):
+                    getattr(found, name)[use] = getattr(known, name)[use]
+            usable = (np.isfinite(found.edge) & np.isfinite(ref.edge)
+                      & (np.abs(found.contrast) >= self.params.min_contrast))
+            if usable.sum() < self.params.min_profiles:
+                return None
+            d = (found.edge - ref.edge)[usable]
+            var = found.var[usable] + ref.var[usable]
+            result = self._solve(d, usable, 1.0 / np.maximum(var, 1e-8), prior)
+            if result is None:
+                return None
+            guess = ref.edge + self.design @ result.theta
+        return result
 
     def _normal(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Displacement of each outline along its line for a motion (u, v) at the profiles:

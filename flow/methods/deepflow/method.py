@@ -34,7 +34,7 @@ from flow.methods.deepflow.deepmatching import (
 )
 from flow.methods.deepflow.hidden import SceneCheck
 from flow.methods.deepflow.localfit import refine_locally
-from flow.methods.deepflow.member import MemberEdges, MemberFit, context_px
+from flow.methods.deepflow.member import BLURS, MemberEdges, MemberFit, context_px
 from flow.methods.deepflow.regionfit import RegionFit, RegionMotion, affine_departure
 from flow.methods.deepflow.variational import VariationalParams, Workspace, refine
 from flow.methods.params import Param, declared, with_defaults
@@ -155,6 +155,15 @@ WARM_RMS_RATIO = 2.0
 # the bench's lowtex-wide bar (4.5 px at a few Hz) was measured in full in 46 frames of 180
 # instead of 14, for no gain.
 MAX_WARM_STEP_PX = 3.0
+# A tracked frame's outline is measured by its chain key's outline model, the sharp one and the
+# profiles matched whole first (the key's choice holds through most chains: five blur models
+# cost two thirds of a tracked frame), and by every model only where the best of those has a
+# spread above this factor of the key's: a member swinging tens of pixels changes its outlines'
+# look from frame to frame (g9-large-motion: its keys chose four different models, and
+# without the rest a tracked frame read up to 6 px off). At 1.2 every bench clip reads as
+# with all five on every frame (RMSE within 0.0006 px; g9 0.1244 against 0.1241), at 1.5
+# g9-large-motion read 0.1265 px.
+TRACKED_SPREAD_RATIO = 1.2
 
 
 # The edge refinement is kept when the POIs' mean photometric mismatch under it is at most
@@ -344,6 +353,7 @@ class _Region:
     theta: np.ndarray | None = None  # the outline's motion of the chain's last frame
     key_mismatch: float = float("nan")  # the POIs' mismatch at the chain's last full measurement
     key_along: np.ndarray | None = None  # the along-member motion the chain's key took from elsewhere
+    key_outline: tuple | None = None  # the key's outline model, its models' disagreement and its spread
     affine: np.ndarray | None = None  # the texture's affine motion of the chain's last frame
     affine_before: np.ndarray | None = None  # and of the frame before it
     key_residual: float = float("nan")  # the texture fit's residual at the chain's key
@@ -386,7 +396,7 @@ class _Region:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
         self.static_known, self.along_tried, self.along_texture, self.along_seen = False, False, False, None
         self.affine, self.affine_before, self.key_residual = None, None, float("nan")
-        self.key_rms = float("nan")
+        self.key_rms, self.key_outline = float("nan"), None
 
     def motion(self, reference: np.ndarray, current: np.ndarray, fit: MemberFit,
                along: np.ndarray | None = None, *, texture: bool = False, texture_first: bool = False,
@@ -870,6 +880,7 @@ class DeepFlow(DenseMethod):
         # (``reach_widened``: dense solves done again with a longer reach, see WIDEN_SHARE.)
         self.counts = dict.fromkeys(("full_frames", "warm_frames", "hidden_frames", "outline_readings", "affine_readings",
                                      "dense_readings", "background_texture_readings", "along_texture", "reach_widened",
+                                     "outline_every_model",
                                      "codec_floor_s",
                                      "codec_floor_x_px", "codec_floor_y_px",
                                      *(f"why_{reason}" for reason in REASONS)), 0)
@@ -1183,6 +1194,7 @@ class DeepFlow(DenseMethod):
             self.counts["along_texture"] += 1
         if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
             region.model, region.theta, region.key_along = "outline", fit.params, along
+            region.key_outline = (fit.model, fit.systematic, fit.spread)
         elif self._chaining and model == "affine":
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
             region.key_rms = texture.rms
@@ -1219,7 +1231,9 @@ class DeepFlow(DenseMethod):
             return region.texture_reading(found)
         member = region.member
         prior = np.column_stack(member.field.uv(region.theta))
-        fit = member.fit(current, prior, gain=region.gain(current))
+        model, systematic, spread = region.key_outline
+        fit = member.fit(current, prior, gain=region.gain(current), first=(0, model, len(BLURS)),
+                         enough_spread=TRACKED_SPREAD_RATIO * spread + 1e-3, systematic=systematic)
         if not fit.ok:
             return None
         u, v, edges, _, state = region.motion(reference, current, fit, region.key_along,
@@ -1243,6 +1257,7 @@ class DeepFlow(DenseMethod):
             region.static_known = True
         region.theta = fit.params
         self._count("outline")
+        self.counts["outline_every_model"] += fit.every_model
         if state == "taken":
             self.counts["along_texture"] += 1
         return u, v, sigma
