@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from flow.methods.deepflow import regionfit
 from flow.methods.deepflow.regionfit import RegionFit
 
 
@@ -213,3 +214,30 @@ def test_a_lossy_codecs_error_is_measured_into_the_texture_sigma_and_a_lossless_
     assert lossless.reported_sigma(_TextureSigma(own)) == tuple(own)
     with pytest.raises(ValueError, match="crf"):
         codec_floor(reference, rows, cols, 60.0)
+
+
+@pytest.mark.parametrize("faint, noise, seed, converges", [(0.03, 0.5, 1, True), (0.03, 1.0, 0, False),
+                                                      (1.0, 0.5, 0, True)])
+def test_a_fit_with_a_budget_stops_only_when_it_could_not_converge_within_it(
+        faint: float, noise: float, seed: int, converges: bool, monkeypatch) -> None:
+    # A faint texture under noise: the reference's gradients are mostly noise and the steps
+    # shrink by a near-constant ratio, slowly; one that cannot reach the tolerance within its
+    # budget stops early (the tracked frames' along-member fit: see ALONG_ITERATIONS), one
+    # that converges late within it (at the 20th of 20 here) is not cut short. (Over 48 such
+    # fits, 12 converging after 12-20 iterations, none was cut short; the others stopped after
+    # 10-13 of their 20.)
+    rng = np.random.default_rng(seed)
+    texture = 128 + faint * (textured(96, 96, 3) - 128)
+    reference = texture + noise * rng.standard_normal(texture.shape)
+    current = shifted(texture, 0.3, 0.1) + noise * rng.standard_normal(texture.shape)
+    rows, cols = np.mgrid[16:80, 16:80].reshape(2, -1)
+    fit = RegionFit(reference, rows, cols, bias_correction=False, max_points=1000, tolerance_px=2e-3)
+    budget = 20
+    found = fit.fit_translation(current, np.zeros(6), max_iterations=budget)
+    monkeypatch.setattr(regionfit, "OUT_OF_BUDGET", np.inf)
+    whole = fit.fit_translation(current, np.zeros(6), max_iterations=budget)
+    assert found.converged == whole.converged == converges
+    if converges:
+        assert found.iterations == whole.iterations and np.array_equal(found.params, whole.params)
+    else:
+        assert whole.iterations == budget and found.iterations <= 0.7 * budget

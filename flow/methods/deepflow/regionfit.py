@@ -72,6 +72,9 @@ DAMPING = 1e-3
 # A fit that ends farther than this (px) from its start, at the region's centroid, has left the
 # basin it started in (no texture to hold it): failed.
 MAX_TRAVEL_PX = 4.0
+# A fit with a budget of iterations (see _out_of_budget) stops once its steps, shrinking as the
+# last ones did, would need more than this factor of it to converge.
+OUT_OF_BUDGET = 1.5
 # Pixels the warped region may leave the cut-out window before it is cut again.
 WINDOW_MARGIN_PX = 6
 
@@ -346,6 +349,7 @@ class RegionFit:
         weights = np.ones(self.rows.size)
         error = np.zeros(self.rows.size)
         converged, iteration = False, 0
+        moves: list[float] = []
         height, width = self.shape
         for iteration in range(1, (max_iterations or MAX_ITERATIONS) + 1):  # noqa: B007 (read after the loop)
             xs, ys = self._positions(params)
@@ -381,6 +385,9 @@ class RegionFit:
                 return failed
             if moved < self.tolerance_px:
                 converged = True
+                break
+            moves.append(moved)
+            if max_iterations is not None and _out_of_budget(moves, iteration, max_iterations, self.tolerance_px):
                 break
         if np.hypot(params[0] - start[0], params[3] - start[3]) > MAX_TRAVEL_PX:
             return dataclasses.replace(failed, iterations=iteration)
@@ -481,6 +488,20 @@ def _periodic(fraction: np.ndarray) -> np.ndarray:
     for k = 1 .. BIAS_HARMONICS (zero at whole pixels)."""
     phase = 2.0 * np.pi * np.asarray(fraction, np.float64)[..., None] * np.arange(1, BIAS_HARMONICS + 1)
     return np.concatenate([np.sin(phase), np.cos(phase) - 1.0], axis=-1)
+
+
+def _out_of_budget(moves: list[float], iteration: int, budget: int, tolerance: float) -> bool:
+    """Whether a fit whose steps shrink no faster than its last ones did (``moves``: each
+    iteration's step, px) cannot reach ``tolerance`` within OUT_OF_BUDGET times its ``budget``
+    of iterations. A fit on a faint texture shrinks its steps by a near-constant ratio (the
+    reference's gradients mostly noise: 0.9 an iteration on the bench's painted bars), and one
+    that would end unconverged at its budget is stopped once it shows it."""
+    if iteration < max(budget // 2, 4):
+        return False  # (the first steps may shrink slowly and the later ones fast)
+    ratio = min(moves[-k] / max(moves[-k - 1], 1e-300) for k in (1, 2, 3))
+    if not 0.0 < ratio < 1.0:
+        return False  # not shrinking: as the budget decides
+    return iteration + np.log(tolerance / moves[-1]) / np.log(ratio) > OUT_OF_BUDGET * budget
 
 
 def _inside(window: tuple[int, int, int, int], xs: np.ndarray, ys: np.ndarray) -> bool:
