@@ -155,14 +155,17 @@ WARM_RMS_RATIO = 2.0
 # the bench's lowtex-wide bar (4.5 px at a few Hz) was measured in full in 46 frames of 180
 # instead of 14, for no gain.
 MAX_WARM_STEP_PX = 3.0
-# A tracked frame's outline is measured by its chain key's outline model, the sharp one and the
-# profiles matched whole first (the key's choice holds through most chains: five blur models
-# cost two thirds of a tracked frame), and by every model only where the best of those has a
-# spread above this factor of the key's: a member swinging tens of pixels changes its outlines'
-# look from frame to frame (g9-large-motion: its keys chose four different models, and
-# without the rest a tracked frame read up to 6 px off). At 1.2 every bench clip reads as
-# with all five on every frame (RMSE within 0.0006 px; g9 0.1244 against 0.1241), at 1.5
-# g9-large-motion read 0.1265 px.
+# A tracked frame's outline is measured first by its chain key's outline model and the blur
+# models either side of it, the sharp one and the profiles matched whole (the key's choice, or
+# its neighbour's, holds through most chains: five blur models cost two thirds of a tracked
+# frame), and by every model only where the best of those has a spread above this factor of
+# the key's: a member swinging tens of pixels changes its outlines' look from frame to frame
+# (g9-large-motion: its keys chose four different models, and with the key's, the sharp one
+# and the whole-profile match alone a tracked frame read up to 6 px off). At 1.2 every bench
+# clip reads as with all five on every frame (RMSE within 0.0006 px; g9 0.1244 against
+# 0.1241), at 1.5 g9-large-motion read 0.1265 px. Without the neighbours, the workbench's
+# `compression` scenario (a blurred outline whose frames choose the key's model or the next)
+# read 0.064 mm RMSE against 0.058 with every model, `low-light` 0.0228 against 0.0224.
 TRACKED_SPREAD_RATIO = 1.2
 
 
@@ -335,6 +338,15 @@ def _choose(affine: tuple | None, outline: tuple | None, strong: bool,
 class _TextureSigma(tuple):
     """A texture fit's own sigma ``(sigma_x, sigma_y)``: the reading it goes with came from the
     texture, whose codec floor (see :meth:`_Region.reported_sigma`) is added once it is chosen."""
+
+
+
+def _first_models(key: int) -> tuple[int, ...]:
+    """The outline models a tracked frame tries first (see TRACKED_SPREAD_RATIO): its chain
+    key's ``key`` and the blur models either side of it, the sharp one and the whole-profile
+    match (index ``len(BLURS)``)."""
+    near = {key - 1, key, key + 1} if key < len(BLURS) else {key}
+    return tuple(sorted({0, len(BLURS)} | (near & set(range(len(BLURS) + 1)))))
 
 
 @dataclasses.dataclass
@@ -1232,7 +1244,7 @@ class DeepFlow(DenseMethod):
         member = region.member
         prior = np.column_stack(member.field.uv(region.theta))
         model, systematic, spread = region.key_outline
-        fit = member.fit(current, prior, gain=region.gain(current), first=(0, model, len(BLURS)),
+        fit = member.fit(current, prior, gain=region.gain(current), first=_first_models(model),
                          enough_spread=TRACKED_SPREAD_RATIO * spread + 1e-3, systematic=systematic)
         if not fit.ok:
             return None
