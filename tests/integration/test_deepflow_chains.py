@@ -144,6 +144,10 @@ def test_tracked_frames_fitted_by_their_key_s_outline_model_read_as_by_every_mod
           f"{difference.max():.4f} px, mean {difference.mean():.5f} px")
     assert rmse[0] <= rmse[1] + 0.001
     assert difference.max() < 0.1 and difference.mean() < 0.003
+    # The uncertainty keeps the key's models' disagreement: of the same size as each frame's own.
+    ratio = np.median(a[seen, 7] / b[seen, 7])
+    print(f"sigma_dx_px, key's models first / every model: median ratio {ratio:.3f}")
+    assert 0.8 < ratio < 1.25
 
 
 def test_frames_stand_alone_where_there_is_nothing_to_track(scene) -> None:

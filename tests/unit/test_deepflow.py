@@ -338,3 +338,13 @@ def test_bspline_coefficients_give_the_image_back_on_any_side(shape):
     variational._bspline_coefficients(image, coef)
     variational._warp(coef, np.zeros(shape + (2,), np.float32), out, inside, True)
     np.testing.assert_allclose(out, image, atol=1e-3)
+
+
+def test_a_tracked_frame_tries_its_key_s_outline_model_and_its_neighbours_first() -> None:
+    from flow.methods.deepflow.member import BLURS
+    from flow.methods.deepflow.method import _first_models
+    shift = len(BLURS)  # the whole-profile match
+    assert _first_models(0) == (0, 1, shift)
+    assert _first_models(2) == (0, 1, 2, 3, shift)
+    assert _first_models(len(BLURS) - 1) == (0, len(BLURS) - 2, len(BLURS) - 1, shift)
+    assert _first_models(shift) == (0, shift)

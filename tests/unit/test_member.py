@@ -87,6 +87,11 @@ def test_a_fit_by_some_outline_models_first_takes_the_rest_only_where_they_agree
         assert np.array_equal(getattr(more, name), getattr(every, name))
     enough = edges.fit(clip.frames[3], prior, first=(every.model,), enough_spread=every.spread)
     assert not enough.every_model and np.array_equal(enough.params, every.params)
+    # None of the first models fitting (none given): every model measures the frame.
+    none_first = edges.fit(clip.frames[3], prior, first=(), systematic=key_systematic)
+    assert none_first.every_model and np.array_equal(none_first.params, every.params)
+    with pytest.raises(ValueError, match="outline models are 0..5"):
+        edges.fit(clip.frames[3], prior, first=(0, len(BLURS) + 1))
 
 
 def test_arguments_are_checked():

@@ -856,6 +856,9 @@ class MemberEdges:
         disagreement is ``systematic`` (px, x and y: a chain key's, see :meth:`mean_sigma`).
         """
         check_shape("current", current, self.shape)
+        if first is not None and not set(first) <= set(range(len(BLURS) + 1)):
+            raise ValueError(f"first={tuple(first)}: outline models are 0..{len(BLURS)} "
+                             f"({len(BLURS)} blur models, then the whole-profile match)")
         if np.shape(prior_uv) != (self.n_profiles, 2):
             raise ValueError(f"prior_uv has shape {np.shape(prior_uv)} but the member has "
                              f"{self.n_profiles} edge profiles: prior_uv must have shape "
@@ -901,7 +904,7 @@ class MemberEdges:
             means = np.array([[gu @ r.theta, gv @ r.theta] for r in plausible])
             systematic = means.std(axis=0) if len(plausible) > 1 else np.zeros(2)
         return MemberFit(True, chosen.theta, self._covariance(chosen), chosen.used, self.n_profiles,
-                         chosen.scale, np.asarray(systematic, np.float64), index, best,
+                         chosen.scale, np.array(systematic, np.float64), index, best,
                          len(fitted) == len(every))
 
     def _model_fit(self, index: int, cur: np.ndarray, start: np.ndarray, gain: float | None,

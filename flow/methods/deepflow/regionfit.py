@@ -271,6 +271,8 @@ class RegionFit:
                         max_iterations: int | None = None) -> RegionMotion:
         """:meth:`fit` with the translation alone free, the deformation kept at the start's, in
         at most ``max_iterations`` steps (None: the fit's own budget)."""
+        if max_iterations is not None and max_iterations < 1:
+            raise ValueError(f"max_iterations={max_iterations}: a fit needs at least one iteration")
         return self._unbiased(self._solve(current, start, _TRANSLATION, max_iterations))
 
     def _unbiased(self, found: RegionMotion) -> RegionMotion:
