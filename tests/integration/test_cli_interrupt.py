@@ -118,6 +118,12 @@ def _python(code: str, *args: str, **kwargs) -> subprocess.CompletedProcess:
                           timeout=300, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kwargs)
 
 
+def _track(code: str, clip: dict[str, Path], out: Path) -> subprocess.CompletedProcess:
+    """:func:`_python` running ``refflow track`` of ``clip`` into ``out`` (1 mm a pixel)."""
+    return _python(code, "track", str(clip["video"]), "--mask", str(clip["mask"]), "--mm-per-px", "1",
+                   "--out", str(out), "--no-progress")
+
+
 def _interrupted_after(module: str, command: str) -> str:
     """A program that runs ``refflow`` with ``module.command`` (a command's function) followed
     by a Ctrl-C: the command has done its work, published its outputs included."""
@@ -135,8 +141,7 @@ def test_ctrl_c_after_the_outputs_are_written_says_so(slow_clip, tmp_path) -> No
     """Ctrl-C after the output set was published (while the run prints its line) leaves the
     files and says they are complete, not "no output written" (which it said, the files there)."""
     out = tmp_path / "bar.csv"
-    run = _python(_interrupted_after("flow.cli", "cmd_track"), "track", str(slow_clip["video"]), "--mask", str(slow_clip["mask"]), "--mm-per-px", "1",
-                  "--out", str(out), "--no-progress")
+    run = _track(_interrupted_after("flow.cli", "cmd_track"), slow_clip, out)
     assert run.returncode == 130, run.stderr[-2000:]
     assert "interrupted; its outputs had been written, complete" in run.stderr, run.stderr[-2000:]
     assert "no output written" not in run.stderr
@@ -173,8 +178,7 @@ def test_ctrl_c_before_the_run_does_not_take_an_earlier_output_for_its_own(slow_
             "    raise KeyboardInterrupt\n"
             "cli.claimed = interrupted\n"
             "sys.exit(cli.main())\n")
-    run = _python(code, "track", str(slow_clip["video"]), "--mask", str(slow_clip["mask"]), "--mm-per-px", "1",
-                  "--out", str(out), "--no-progress")
+    run = _track(code, slow_clip, out)
     assert run.returncode == 130, run.stderr[-2000:]
     assert "interrupted; no output written" in run.stderr, run.stderr[-2000:]
     assert out.read_text() == "earlier"
@@ -213,8 +217,7 @@ def test_a_signal_inside_a_compiled_kernel_is_still_the_signal(slow_clip, tmp_pa
             "        raise SystemError('CPUDispatcher returned a result with an exception set') from inner\n"
             "cli.cmd_track = kernel\n"
             "sys.exit(cli.main())\n")
-    run = _python(code, "track", str(slow_clip["video"]), "--mask", str(slow_clip["mask"]), "--mm-per-px", "1",
-                  "--out", str(out), "--no-progress")
+    run = _track(code, slow_clip, out)
     assert run.returncode == status, run.stderr[-2000:]
     assert f"refflow track: {said}; no output written" in run.stderr and "Traceback" not in run.stderr, run.stderr
     assert list(tmp_path.iterdir()) == []
