@@ -160,12 +160,13 @@ MAX_WARM_STEP_PX = 3.0
 # its neighbour's, holds through most chains: five blur models cost two thirds of a tracked
 # frame), and by every model only where the best of those has a spread above this factor of
 # the key's: a member swinging tens of pixels changes its outlines' look from frame to frame
-# (g9-large-motion: its keys chose four different models, and with the key's, the sharp one
-# and the whole-profile match alone a tracked frame read up to 6 px off). At 1.2 every bench
-# clip reads as with all five on every frame (RMSE within 0.0006 px; g9 0.1244 against
-# 0.1241), at 1.5 g9-large-motion read 0.1265 px. Without the neighbours, the workbench's
-# `compression` scenario (a blurred outline whose frames choose the key's model or the next)
-# read 0.064 mm RMSE against 0.058 with every model, `low-light` 0.0228 against 0.0224.
+# (g9-large-motion: its keys chose four different models, and without the fall-back a tracked
+# frame read up to 6 px off). At 1.2 every bench clip reads as with all of them on every frame
+# (dx_px, dy_px to 1e-6 px; only sigma moves, by the key's disagreement standing in for the
+# frame's). Without the neighbours (the key's, the sharp one and the whole-profile match only)
+# g9 read 0.1244 px against 0.1241 at 1.2 and 0.1265 at 1.5, and the workbench's `compression`
+# scenario (a blurred outline whose frames choose the key's model or the next) 0.064 mm RMSE
+# against 0.058 with every model, `low-light` 0.0228 against 0.0224.
 TRACKED_SPREAD_RATIO = 1.2
 
 
@@ -338,7 +339,6 @@ def _choose(affine: tuple | None, outline: tuple | None, strong: bool,
 class _TextureSigma(tuple):
     """A texture fit's own sigma ``(sigma_x, sigma_y)``: the reading it goes with came from the
     texture, whose codec floor (see :meth:`_Region.reported_sigma`) is added once it is chosen."""
-
 
 
 def _first_models(key: int) -> tuple[int, ...]:
