@@ -224,8 +224,8 @@ def test_a_fit_with_a_budget_stops_only_when_it_could_not_converge_within_it(
     # shrink by a near-constant ratio, slowly; one that cannot reach the tolerance within its
     # budget stops early (the tracked frames' along-member fit: see ALONG_ITERATIONS), one
     # that converges late within it (at the 20th of 20 here) is not cut short. (Over 48 such
-    # fits, 12 converging after 12-20 iterations, none was cut short; the others stopped after
-    # 10-13 of their 20.)
+    # fits, 18 converging after 7-20 iterations, none was cut short; of the others 25 stopped
+    # after 4-10 of their 20, the rest at 20.)
     rng = np.random.default_rng(seed)
     texture = 128 + faint * (textured(96, 96, 3) - 128)
     reference = texture + noise * rng.standard_normal(texture.shape)
@@ -240,4 +240,4 @@ def test_a_fit_with_a_budget_stops_only_when_it_could_not_converge_within_it(
     if converges:
         assert found.iterations == whole.iterations and np.array_equal(found.params, whole.params)
     else:
-        assert whole.iterations == budget and found.iterations <= 0.7 * budget
+        assert whole.iterations == budget and found.iterations <= 0.25 * budget
