@@ -72,6 +72,11 @@ DAMPING = 1e-3
 # A fit that ends farther than this (px) from its start, at the region's centroid, has left the
 # basin it started in (no texture to hold it): failed.
 MAX_TRAVEL_PX = 4.0
+# The share of the region's pixels a step must keep within the frame (the others, warped out
+# of it, are left out of that step): fewer, and the fit has failed. Before 2026-12-05 one pixel
+# out failed it: a background marked up to the frame's edge lost its texture reading as soon
+# as the camera drifted (the workbench's long-drift scenario, 2.4 px: 1 frame of 61 read).
+MIN_INSIDE = 0.5
 # A fit with a budget of iterations (see _out_of_budget) stops once its steps, shrinking as the
 # last ones did, would need more than this factor of it to converge.
 OUT_OF_BUDGET = 1.5
@@ -128,7 +133,7 @@ class RegionMotion:
     residual: float  # robust rms of the grey-level residual, in the reference's grey levels
     iterations: int
     inliers: float  # share of the pixels the robust weights keep (weight > 0)
-    rms: float = float("nan")  # plain rms of the grey-level residual over all the region's pixels
+    rms: float = float("nan")  # plain rms of the grey-level residual over the region's pixels (those in the frame)
 
 
 def _warp_matrix(params: np.ndarray, scale: float) -> np.ndarray:
@@ -241,8 +246,8 @@ class RegionFit:
         cv = np.linalg.lstsq(design, v[ok].astype(np.float64), rcond=None)[0]
         return np.array([cu[0], cu[1], cu[2], cv[0], cv[1], cv[2]])
 
-    def _window(self, params: np.ndarray) -> tuple[int, int, int, int]:
-        xs, ys = self._positions(params)
+    def _window(self, xs: np.ndarray, ys: np.ndarray) -> tuple[int, int, int, int]:
+        """The part of the frame the positions ``xs``, ``ys`` sample, with its margins."""
         height, width = self.shape
         pad = WINDOW_MARGIN_PX + 2 * SPLINE_ORDER
         r0 = int(np.clip(np.floor(ys.min()) - pad, 0, height - 1))
@@ -353,13 +358,22 @@ class RegionFit:
         converged, iteration = False, 0
         moves: list[float] = []
         height, width = self.shape
+        inside = np.ones(self.rows.size, bool)
         for iteration in range(1, (max_iterations or MAX_ITERATIONS) + 1):  # noqa: B007 (read after the loop)
             xs, ys = self._positions(params)
-            if not (np.all(np.isfinite(xs)) and xs.min() > -1 and ys.min() > -1
-                    and xs.max() < width and ys.max() < height):
-                return failed  # the warp has left the frame (a lost or wild start)
+            if not (np.all(np.isfinite(xs)) and np.all(np.isfinite(ys))):
+                return failed
+            inside = (xs > -1) & (ys > -1) & (xs < width) & (ys < height)
+            everywhere = bool(inside.all())
+            if not everywhere:
+                # Pixels the warp took out of the frame (a wall's edge as the camera drifts, a
+                # member leaving the view) are left out of this step; the fit fails where fewer
+                # than MIN_INSIDE of them stay (a lost or wild start).
+                if inside.sum() < MIN_INSIDE * inside.size:
+                    return failed
+                xs, ys = xs[inside], ys[inside]
             if window is None or not _inside(window, xs, ys):
-                window = self._window(params)
+                window = self._window(xs, ys)
                 r0, r1, c0, c1 = window
                 coeffs = ndimage.spline_filter(current[r0:r1, c0:c1].astype(np.float64),
                                                order=SPLINE_ORDER, mode="mirror")
@@ -370,8 +384,17 @@ class RegionFit:
             g_norm = float(np.sqrt(np.sum(g ** 2)))
             if g_norm <= 0:
                 return failed
-            error = self._f - (self._f_norm / g_norm) * g
-            weights = _tukey(error, weights if iteration > 1 else None)
+            if everywhere:
+                error = self._f - (self._f_norm / g_norm) * g
+                weights = _tukey(error, weights if iteration > 1 else None)
+            else:  # the same, over the pixels in the frame (error and weight 0 elsewhere)
+                f = self._f[inside] - self._f[inside].mean()
+                part = f - (float(np.sqrt(np.sum(f ** 2))) / g_norm) * g
+                error = np.zeros(inside.size)
+                error[inside] = part
+                previous = weights[inside] if iteration > 1 else None
+                weights = np.zeros(inside.size)
+                weights[inside] = _tukey(part, previous)
             weighted = jacobian * weights[:, None]
             hessian = weighted.T @ jacobian
             damped = hessian + DAMPING * np.trace(hessian) / free.size * np.eye(free.size)
@@ -395,7 +418,7 @@ class RegionFit:
             return dataclasses.replace(failed, iterations=iteration)
         return RegionMotion(params, converged, self._sigma(error, weights, hessian, jacobian),
                             _robust_rms(error, weights), iteration, float(np.mean(weights > 0)),
-                            float(np.sqrt(np.mean(error ** 2))))
+                            float(np.sqrt(np.mean(error[inside] ** 2))))
 
     def _sigma(self, error: np.ndarray, weights: np.ndarray, hessian: np.ndarray,
                jacobian: np.ndarray) -> tuple[float, float]:
