@@ -369,7 +369,7 @@ class _Region:
     affine: np.ndarray | None = None  # the texture's affine motion of the chain's last frame
     affine_before: np.ndarray | None = None  # and of the frame before it
     key_residual: float = float("nan")  # the texture fit's residual at the chain's key
-    key_rms: float = float("nan")  # and its plain rms over all the region's pixels
+    key_rms: float = float("nan")  # and its plain rms over the region's pixels (those in the frame)
     static_known: bool = False  # the chain's key saw the background still or moving with the member
     reference: np.ndarray | None = None  # kept for the codec floor (None: the frames are lossless)
     codec_crf: float | None = None  # the lossy stream's quality (see flow.methods.deepflow.codecfloor)

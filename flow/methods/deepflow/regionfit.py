@@ -363,7 +363,9 @@ class RegionFit:
             xs, ys = self._positions(params)
             if not (np.all(np.isfinite(xs)) and np.all(np.isfinite(ys))):
                 return failed
-            inside = (xs > -1) & (ys > -1) & (xs < width) & (ys < height)
+            # (A pixel between the frame's edge and one beyond it would be read from the
+            # spline's mirror image of the frame, not from the scene: it is out too.)
+            inside = (xs >= 0) & (ys >= 0) & (xs <= width - 1) & (ys <= height - 1)
             everywhere = bool(inside.all())
             if not everywhere:
                 # Pixels the warp took out of the frame (a wall's edge as the camera drifts, a
@@ -372,7 +374,7 @@ class RegionFit:
                 if inside.sum() < MIN_INSIDE * inside.size:
                     return failed
                 xs, ys = xs[inside], ys[inside]
-            if window is None or not _inside(window, xs, ys):
+            if window is None or not _inside(window, xs, ys, self.shape):
                 window = self._window(xs, ys)
                 r0, r1, c0, c1 = window
                 coeffs = ndimage.spline_filter(current[r0:r1, c0:c1].astype(np.float64),
@@ -533,11 +535,16 @@ def _out_of_budget(moves: list[float], iteration: int, budget: int, tolerance: f
     return iteration + np.log(tolerance / moves[-1]) / np.log(ratio) > OUT_OF_BUDGET * budget
 
 
-def _inside(window: tuple[int, int, int, int], xs: np.ndarray, ys: np.ndarray) -> bool:
+def _inside(window: tuple[int, int, int, int], xs: np.ndarray, ys: np.ndarray,
+            shape: tuple[int, ...]) -> bool:
+    """Whether the cut-out ``window`` still holds the positions with the spline's margin, on
+    every side but one where it already reaches the frame's edge (cutting it again would give
+    the same window: a region marked up to the edge re-filtered it every step)."""
     r0, r1, c0, c1 = window
+    height, width = shape[:2]
     pad = SPLINE_ORDER
-    return bool(xs.min() >= c0 + pad and xs.max() <= c1 - 1 - pad
-                and ys.min() >= r0 + pad and ys.max() <= r1 - 1 - pad)
+    return bool((c0 == 0 or xs.min() >= c0 + pad) and (c1 == width or xs.max() <= c1 - 1 - pad)
+                and (r0 == 0 or ys.min() >= r0 + pad) and (r1 == height or ys.max() <= r1 - 1 - pad))
 
 
 def _tukey(error: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
