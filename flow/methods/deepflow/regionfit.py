@@ -386,17 +386,17 @@ class RegionFit:
             g_norm = float(np.sqrt(np.sum(g ** 2)))
             if g_norm <= 0:
                 return failed
+            # The reference over the pixels in the frame (error and weight 0 elsewhere).
             if everywhere:
-                error = self._f - (self._f_norm / g_norm) * g
-                weights = _tukey(error, weights if iteration > 1 else None)
-            else:  # the same, over the pixels in the frame (error and weight 0 elsewhere)
+                f, f_norm = self._f, self._f_norm
+            else:
                 f = self._f[inside] - self._f[inside].mean()
-                part = f - (float(np.sqrt(np.sum(f ** 2))) / g_norm) * g
-                error = np.zeros(inside.size)
-                error[inside] = part
-                previous = weights[inside] if iteration > 1 else None
-                weights = np.zeros(inside.size)
-                weights[inside] = _tukey(part, previous)
+                f_norm = float(np.sqrt(np.sum(f ** 2)))
+            part = f - (f_norm / g_norm) * g
+            previous = weights[inside] if iteration > 1 else None
+            error, weights = np.zeros(inside.size), np.zeros(inside.size)
+            error[inside] = part
+            weights[inside] = _tukey(part, previous)
             weighted = jacobian * weights[:, None]
             hessian = weighted.T @ jacobian
             damped = hessian + DAMPING * np.trace(hessian) / free.size * np.eye(free.size)
@@ -537,9 +537,9 @@ def _out_of_budget(moves: list[float], iteration: int, budget: int, tolerance: f
 
 def _inside(window: tuple[int, int, int, int], xs: np.ndarray, ys: np.ndarray,
             shape: tuple[int, ...]) -> bool:
-    """Whether the cut-out ``window`` still holds the positions with the spline's margin, on
-    every side but one where it already reaches the frame's edge (cutting it again would give
-    the same window: a region marked up to the edge re-filtered it every step)."""
+    """Whether the cut-out ``window`` still holds the positions with the spline's margin; a side
+    where the window already reaches the frame's edge needs none (cutting it again would give the
+    same window there: a region marked up to the edge was filtered again every step)."""
     r0, r1, c0, c1 = window
     height, width = shape[:2]
     pad = SPLINE_ORDER
