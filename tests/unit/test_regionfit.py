@@ -216,6 +216,27 @@ def test_a_lossy_codecs_error_is_measured_into_the_texture_sigma_and_a_lossless_
         codec_floor(reference, rows, cols, 60.0)
 
 
+def test_a_large_regions_codec_floor_is_measured_in_a_bounded_window(monkeypatch) -> None:
+    """A region larger than FLOOR_MAX_PIXELS (a whole 4K frame's worth of POIs) is measured in a
+    window of that area about its middle: before 2026-12-05 the copies of a 1700x800 region
+    took 2.9 GB and 12 s (a whole 4K frame's would take minutes and gigabytes). A region
+    within it is measured whole, as before."""
+    from flow.methods.deepflow import codecfloor
+
+    made = []
+    real = codecfloor.shifted_copies
+    monkeypatch.setattr(codecfloor, "shifted_copies", lambda crop, shifts: made.append(crop.shape) or real(crop, shifts))
+    monkeypatch.setattr(codecfloor, "FLOOR_MAX_PIXELS", 64 * 96)
+    reference = to_u8(textured(240, 320, seed=7)).astype(np.float64)
+    rows, cols = _region(reference.shape, (10, 230, 10, 310))  # an L-shape's long arm and foot
+    keep = (rows > 180) | (cols < 60)
+    floor = codecfloor.codec_floor(reference, rows[keep], cols[keep], 23.0)
+    assert made[-1][0] * made[-1][1] <= 64 * 96 and all(np.isfinite(floor)) and min(floor) > 0.005
+    small_rows, small_cols = _region(reference.shape, (40, 60, 40, 80))
+    codecfloor.codec_floor(reference, small_rows, small_cols, 23.0)
+    assert made[-1] == (20 + 2 * 24, 40 + 2 * 24)
+
+
 @pytest.mark.parametrize("faint, noise, seed, converges", [(0.03, 0.5, 1, True), (0.03, 1.0, 0, False),
                                                       (1.0, 0.5, 0, True)])
 def test_a_fit_with_a_budget_stops_only_when_it_could_not_converge_within_it(

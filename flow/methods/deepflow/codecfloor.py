@@ -32,19 +32,30 @@ FLOOR_RADIUS_PX = 0.25
 FLOOR_PERIOD_FRAMES = 12
 # Reference kept around the region's bounding box (the fit's window and the codec's blocks).
 FLOOR_MARGIN_PX = 24
+# The most pixels of the reference the copies are made of: a larger region (a whole 4K
+# frame's worth of POIs) is measured in a window of this area about its middle. The codec's
+# error is a matter of its blocks, alike over the region, and the fit takes at most
+# MAX_POINTS of its pixels either way; the copies' Fourier shifts and encoding grow with the
+# area (a 1700x800 region: 12 s; a whole 4K frame's would take minutes and gigabytes).
+FLOOR_MAX_PIXELS = 1 << 20
 
 
 def shifted_copies(crop: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     """``crop`` (H, W) shifted exactly by each ``(dx, dy)`` of ``shifts`` (N, 2), as 8-bit frames
-    (mirrored before the Fourier shift, so that the shift's wrap-around stays outside)."""
+    (mirrored before the Fourier shift, so that the shift's wrap-around stays outside). Each
+    copy is rounded to 8 bits as it is made (before 2026-12-05 all N were held as float64 and
+    their whole mirrored planes with them: 2.9 GB for a 1700x800 region)."""
     height, width = crop.shape
     mirrored = np.pad(np.asarray(crop, np.float64), ((0, height), (0, width)), mode="symmetric")
     spectrum = np.fft.fft2(mirrored)
+    del mirrored
     fy = np.fft.fftfreq(2 * height)[:, None]
     fx = np.fft.fftfreq(2 * width)[None, :]
-    frames = [np.real(np.fft.ifft2(spectrum * np.exp(-2j * np.pi * (dx * fx + dy * fy))))[:height, :width]
-              for dx, dy in shifts]
-    return np.clip(np.rint(frames), 0, 255).astype(np.uint8)
+    frames = np.empty((len(shifts), height, width), np.uint8)
+    for frame, (dx, dy) in zip(frames, shifts, strict=True):
+        moved = np.real(np.fft.ifft2(spectrum * np.exp(-2j * np.pi * (dx * fx + dy * fy))))[:height, :width]
+        frame[:] = np.clip(np.rint(moved), 0, 255)
+    return frames
 
 
 def x264_round_trip(frames: np.ndarray, crf: float) -> np.ndarray | None:
@@ -85,9 +96,17 @@ def codec_floor(reference: np.ndarray, rows: np.ndarray, cols: np.ndarray, crf: 
     r0, c0 = max(int(rows.min()) - FLOOR_MARGIN_PX, 0), max(int(cols.min()) - FLOOR_MARGIN_PX, 0)
     r1 = min(int(rows.max()) + FLOOR_MARGIN_PX + 1, height)
     c1 = min(int(cols.max()) + FLOOR_MARGIN_PX + 1, width)
+    if (r1 - r0) * (c1 - c0) > FLOOR_MAX_PIXELS:
+        # A window of FLOOR_MAX_PIXELS, the box's shape, about the region's middle pixel.
+        shrink = np.sqrt(FLOOR_MAX_PIXELS / ((r1 - r0) * (c1 - c0)))
+        h, w = max(int((r1 - r0) * shrink), 16), max(int((c1 - c0) * shrink), 16)
+        middle = int(np.argmin(np.hypot(rows - np.median(rows), cols - np.median(cols))))
+        r0 = int(np.clip(rows[middle] - h // 2, r0, r1 - h))
+        c0 = int(np.clip(cols[middle] - w // 2, c0, c1 - w))
+        r1, c1 = r0 + h, c0 + w
     r1 -= (r1 - r0) % 2  # yuv420p: even sides
     c1 -= (c1 - c0) % 2
-    inside = (rows < r1) & (cols < c1)
+    inside = (rows >= r0) & (cols >= c0) & (rows < r1) & (cols < c1)
     if inside.sum() < 8 or r1 - r0 < 16 or c1 - c0 < 16:
         return failed
     phase = 2.0 * np.pi * np.arange(FLOOR_FRAMES) / FLOOR_PERIOD_FRAMES
