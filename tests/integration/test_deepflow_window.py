@@ -118,6 +118,31 @@ def test_a_long_reach_is_matched_coarser_to_stay_within_the_memory_budget():
     assert near.downscale == base.downscale and near.ngh_rad == BASE_REACH_PX
 
 
+def test_a_whole_image_search_is_matched_coarser_or_refused_within_the_memory_budget():
+    """``ngh_rad=0`` (the whole image) keeps to MATCH_BUDGET_BYTES as any reach does: matched
+    coarser where that fits (before 2026-12-05 it was exempt, and Middlebury's 741x500
+    Motorcycle pair took 24 GB and was killed), refused with the longest radius that fits
+    where even the coarsest matching would not (a 1080p frame)."""
+    from flow.io.errors import InputError
+    from flow.methods.deepflow.deepmatching import MatchParams, response_bytes
+    from flow.methods.deepflow.method import MATCH_BUDGET_BYTES, _match_at
+
+    whole = MatchParams(ngh_rad=0)
+    assert response_bytes((500, 741), whole) > 10 * MATCH_BUDGET_BYTES
+    coarse = _match_at(whole, None, (500, 741), (500, 741))
+    assert coarse.ngh_rad == 0 and coarse.downscale > whole.downscale
+    assert response_bytes((500, 741), coarse) <= MATCH_BUDGET_BYTES
+    with pytest.raises(InputError, match=r"ngh_rad=0 searches the whole 1920x1080 px image .* at most (\d+) px") as err:
+        _match_at(whole, None, (1080, 1920), (1080, 1920))
+    radius = int(str(err.value).split("--param ngh_rad=")[1].split(")")[0])
+    fits = _match_at(MatchParams(ngh_rad=radius), None, (1080, 1920), (1080, 1920))
+    assert response_bytes((1080, 1920), fits) <= MATCH_BUDGET_BYTES
+    with pytest.raises(InputError):
+        _match_at(MatchParams(ngh_rad=2 * radius + 64), None, (1080, 1920), (1080, 1920))
+    # The default's own reach is never refused (a 24 Mpx still's whole frame: as before).
+    assert _match_at(MatchParams(), None, (4000, 6000), (4000, 6000)).downscale == 8
+
+
 def test_the_field_of_frames_cut_to_the_work_area_sits_where_the_pixels_are(scene):
     """``--field`` with frames cut to the method's work area (issue 33 over issue 31): the mask
     pixels' field is read from the cut flow at their own place, so the mean over the kept

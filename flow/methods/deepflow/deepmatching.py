@@ -73,7 +73,9 @@ class MatchParams:
     downscale : int
         Integer factor the images are reduced by before matching (1 = none).
     ngh_rad : float or None
-        Search radius in full-resolution pixels (0: whole image, slow). None (the
+        Search radius in full-resolution pixels (0: the whole image, matched at a coarser
+        downscale where its memory needs it, refused where even downscale 8 would pass the
+        budget, see :func:`flow.methods.deepflow.method._match_at`). None (the
         default) scales it with the image: :data:`REACH` of its longer side, at least
         :data:`MIN_RADIUS` px, so that a larger view of a moving structure is searched as far
         (the ``deepflow`` method bound to a mask instead follows the member's motion, see
@@ -98,7 +100,8 @@ class MatchParams:
     # its cost bounded (a radius or patch beyond any frame adds nothing but work).
     downscale: int = field(default=2, metadata=bounds(1, 8, "factor the images are reduced by before matching"))
     ngh_rad: float | None = field(default=None, metadata=bounds(
-        0, 10000, "search radius in full-resolution px (0: the whole image, slow)",
+        0, 10000, "search radius in full-resolution px (0: the whole image, matched coarser where "
+        "its memory needs it)",
         none_means=f"deepflow with a mask: from the motion (32 px, widened where the motion passes half "
                    f"of it); a frame solved whole: {REACH:g} of its longer side, at least {MIN_RADIUS:g} px"))
     max_patch: int = field(default=32, metadata=bounds(8, 512, "largest patch side in downscaled px"))

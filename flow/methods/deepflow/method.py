@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from flow.io.errors import InputError
 from flow.measure.photometric import sample
 from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
 from flow.methods.deepflow.codecfloor import codec_floor
@@ -121,11 +122,40 @@ def _match_at(match: MatchParams, reach: float | None, window_shape: tuple[int, 
     """``match`` with its search radius made explicit (``reach``; None: the frame's default,
     for a frame solved without POIs to follow) and a downscale coarse enough for a
     ``window_shape`` matching to fit :data:`MATCH_BUDGET_BYTES`."""
-    if match.ngh_rad is None:
+    explicit = match.ngh_rad is not None
+    if not explicit:
         match = dataclasses.replace(match, ngh_rad=search_radius(match, whole_shape) if reach is None else reach)
-    while match.ngh_rad > 0 and match.downscale < 8 and response_bytes(window_shape, match) > MATCH_BUDGET_BYTES:
+    # (ngh_rad 0, the whole image, too: before 2026-12-05 it was exempt, and a 741x500 pair
+    # took 24 GB and was killed.)
+    while match.downscale < 8 and response_bytes(window_shape, match) > MATCH_BUDGET_BYTES:
         match = dataclasses.replace(match, downscale=min(8, 2 * match.downscale))
+    needed = response_bytes(window_shape, match)
+    if explicit and needed > MATCH_BUDGET_BYTES:
+        # Even the coarsest matching of the user's radius would pass the budget (the default's
+        # reach passes it only past a 4K window: MAX_REACH_PX at downscale 8 fits one; it goes
+        # on there, as before).
+        fits = _radius_within_budget(window_shape, match)
+        raise InputError(
+            f"ngh_rad={match.ngh_rad:g} searches {'the whole' if match.ngh_rad == 0 else 'so far in the'} "
+            f"{window_shape[1]}x{window_shape[0]} px image that DeepMatching would need "
+            f"{needed / 2**30:.1f} GB even at downscale {match.downscale} (budget "
+            f"{MATCH_BUDGET_BYTES / 2**20:.0f} MB); give a search radius of at most {fits} px "
+            f"(--param ngh_rad={fits}), or leave ngh_rad out to follow the motion")
     return match
+
+
+def _radius_within_budget(window_shape: tuple[int, ...], match: MatchParams) -> int:
+    """The longest search radius (full-resolution px, at least 1) whose matching of a
+    ``window_shape`` image at ``match``'s downscale stays within MATCH_BUDGET_BYTES."""
+    radius = 1
+    while response_bytes(window_shape, dataclasses.replace(match, ngh_rad=float(2 * radius))) <= MATCH_BUDGET_BYTES:
+        radius *= 2
+    step = radius // 2
+    while step >= 1:
+        if response_bytes(window_shape, dataclasses.replace(match, ngh_rad=float(radius + step))) <= MATCH_BUDGET_BYTES:
+            radius += step
+        step //= 2
+    return radius
 
 
 # Frames of one chain (see the driver, :func:`flow.measure.driver.track_dense`) are measured in order.
