@@ -152,3 +152,26 @@ def test_each_corrected_pois_uncertainty_is_its_windows_noise() -> None:
     _, _, su, sv = refine_locally(stripes, stripes, srows, scols, np.full(srows.size, 0.2),
                                   np.zeros(srows.size), with_sigma=True)
     assert np.isnan(su).all() and np.isnan(sv).all()
+
+
+def test_a_tall_regions_pois_are_corrected_in_bands_as_if_at_once(monkeypatch) -> None:
+    """The POIs are corrected in bands of BAND_ROWS rows of their box, each with the POIs its
+    windows reach (a whole 4K frame's 8 M POIs held dozens of per-POI arrays at once: 2.5 GB,
+    1.7 GB in bands): the readings are the one-band readings to the bit, in any order of the
+    POIs, and their sigmas to float precision."""
+    import flow.methods.deepflow.localfit as localfit
+
+    reference, current, poi, shift = _sine_pair(0.1)
+    rows, cols = np.nonzero(poi)
+    order = np.random.default_rng(3).permutation(rows.size)
+    rows, cols = rows[order], cols[order]
+    start_u, start_v = 0.8 * shift[cols], np.zeros(rows.size)
+    start_u[::53] = np.nan
+    whole = refine_locally(reference, current, rows, cols, start_u, start_v, with_sigma=True)
+    monkeypatch.setattr(localfit, "BAND_ROWS", 16)  # 72 rows of POIs: 7 bands of the box
+    banded = refine_locally(reference, current, rows, cols, start_u, start_v, with_sigma=True)
+    assert np.array_equal(whole[0], banded[0], equal_nan=True) and np.array_equal(whole[1], banded[1], equal_nan=True)
+    assert np.allclose(whole[2], banded[2], rtol=1e-5, equal_nan=True)
+    assert np.allclose(whole[3], banded[3], rtol=1e-5, equal_nan=True)
+    moved = np.isfinite(whole[2])
+    assert moved.mean() > 0.5 and np.all(whole[0][moved] != start_u[moved])  # a test that can fail

@@ -73,6 +73,8 @@ MIN_ISOTROPY = 0.01
 # the dense field stays.
 MAX_STEP_PX = 0.5
 SOLVE_CHUNK = 65536  # POIs whose 4x4 systems are solved at once
+# Rows of the POIs' bounding box whose POIs are corrected at once (see refine_locally).
+BAND_ROWS = 512
 
 
 def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray, cols: np.ndarray,
@@ -104,65 +106,113 @@ def refine_locally(reference: np.ndarray, current: np.ndarray, rows: np.ndarray,
     # The reference's gradient is its own interpolant's (a central difference of the samples
     # reads fine speckle's slope short and the step long: 7 % on Sample 14, 20 % on 1 px speckle).
     gy, gx = np.gradient(ndimage.spline_filter(ref, order=SPLINE_ORDER, mode=SPLINE_MODE))
-    level = ref[r, c] - float(np.mean(ref[r, c]))
-    basis = (gx[r, c], gy[r, c], np.ones(len(r)), level)
-    ys = rows + np.where(finite, v, 0.0) - c_top
-    xs = cols + np.where(finite, u, 0.0) - c_left
-    inside = finite & (xs >= 0) & (ys >= 0) & (xs <= coef.shape[1] - 1) & (ys <= coef.shape[0] - 1)
-    warped = ndimage.map_coordinates(coef, [ys, xs], order=SPLINE_ORDER, prefilter=False, mode=SPLINE_MODE)
-    error = np.where(inside, warped - ref[r, c], 0.0)
-    used = inside.astype(np.float64)
-
-    def window(values: np.ndarray, sigma_px: float = window_px) -> np.ndarray:
-        grid = np.zeros(ref.shape, np.float32)
-        grid[r, c] = values
-        return cv2.GaussianBlur(grid, (0, 0), sigma_px)[r, c]
-
-    # Each window's least squares of the error on the motion and a brightness offset and gain
-    # (auto-exposure, flicker: a 5 % gain left 0.036 px RMS on a 0.3 px shift without them).
-    # The windowed sums are kept in float32, one array per entry, and the systems solved in
-    # chunks: a 3000x400 member's 1.2 M POIs cost tens of MB, not a (N, 4, 4) float64 stack.
-    n = len(basis)
-    pairs = [(i, j) for i in range(n) for j in range(i, n)]
-    sums = {pair: window(used * basis[pair[0]] * basis[pair[1]]) for pair in pairs}
-    rhs = [window(used * b * error) for b in basis]
-    a11, a12, a22, cover = sums[0, 0], sums[0, 1], sums[1, 1], sums[2, 2]
-    # Texture in both directions: the structure tensor's smaller eigenvalue at least
-    # MIN_GRADIENT^2 per unit of the window's weight and MIN_ISOTROPY of the larger (stripes,
-    # a flat patch's noise: the dense field stays).
-    trace, det = a11.astype(np.float64) + a22, a11.astype(np.float64) * a22 - a12.astype(np.float64) * a12
-    smaller = 0.5 * (trace - np.sqrt(np.maximum(trace * trace - 4 * det, 0.0)))
-    good = (inside & (cover >= MIN_COVER) & (smaller >= MIN_GRADIENT ** 2 * np.maximum(cover, 1e-12))
-            & (smaller >= MIN_ISOTROPY * (trace - smaller)))
-    step = np.zeros((len(r), 2))
-    if with_sigma:
-        variance = np.full((len(r), 2), np.nan)
-        squares = window(used * error * error).astype(np.float64)
-        # The window's squared weights (a Gaussian's square is the Gaussian of sigma / sqrt 2).
-        weight2 = window(used, window_px / np.sqrt(2.0)) / (4.0 * np.pi * window_px ** 2)
-    chosen = np.flatnonzero(good)
-    for start in range(0, chosen.size, SOLVE_CHUNK):
-        part = chosen[start:start + SOLVE_CHUNK]
-        system = np.empty((part.size, n, n))
-        for i, j in pairs:
-            system[:, i, j] = system[:, j, i] = sums[i, j][part]
-        right = np.stack([b[part] for b in rhs], axis=1).astype(np.float64)
-        solution = np.linalg.solve(system, right[..., None])[..., 0]
-        step[part] = solution[:, :2]
+    box = _Box(ref, gx, gy, coef, (c_top - top, c_left - left), float(np.mean(ref[r, c])), window_px)
+    out_u, out_v = u.copy(), v.copy()
+    sigma = np.full((len(r), 2), np.nan) if with_sigma else None
+    # The POIs in bands of BAND_ROWS rows of the box, each with the POIs within the windows'
+    # reach of it (their sums are the whole box's, to the bit): a whole 4K frame's 8 M POIs held
+    # their dozens of per-POI arrays at once (2.8 GB).
+    halo = int(np.ceil(4.0 * window_px)) + 2  # OpenCV's Gaussian kernel reaches 4 sigma
+    order = np.argsort(r, kind="stable")
+    sorted_rows = r[order]
+    for b0 in range(0, ref.shape[0], BAND_ROWS):
+        b1 = min(b0 + BAND_ROWS, ref.shape[0])
+        g0, g1 = max(b0 - halo, 0), min(b1 + halo, ref.shape[0])
+        if b0 == 0 and b1 == ref.shape[0]:
+            near = np.arange(len(r))
+        else:
+            near = order[np.searchsorted(sorted_rows, g0):np.searchsorted(sorted_rows, g1)]
+        own = (r[near] >= b0) & (r[near] < b1)
+        if not own.any():
+            continue
+        found = box.step(r[near], c[near], u[near], v[near], finite[near], (g0, g1), own, with_sigma)
+        kept = near[own]
+        out_u[kept], out_v[kept] = found[0], found[1]
         if with_sigma:
-            # The residual's weighted variance after the step, and the step's covariance.
-            rss = np.maximum(squares[part] - np.sum(solution * right, axis=1), 0.0)
-            cover_part = cover[part].astype(np.float64)
-            scale = rss / cover_part * (weight2[part] / cover_part) / _KERNEL_SQUARES
-            inverse = np.linalg.inv(system)
-            variance[part, 0] = scale * inverse[:, 0, 0]
-            variance[part, 1] = scale * inverse[:, 1, 1]
-    good &= (np.abs(step[:, 0]) <= MAX_STEP_PX) & (np.abs(step[:, 1]) <= MAX_STEP_PX)
-    out_u, out_v = np.where(good, u - step[:, 0], u), np.where(good, v - step[:, 1], v)
+            sigma[kept] = found[2]
     if not with_sigma:
         return out_u, out_v
-    sigma = np.where(good[:, None], np.sqrt(variance), np.nan)
     return out_u, out_v, sigma[:, 0], sigma[:, 1]
+
+
+class _Box:
+    """The reference (smoothed), its interpolant's gradient and the frame's B-spline coefficients
+    over the POIs' bounding box (see :func:`refine_locally`), and the step of any of its POIs."""
+
+    def __init__(self, ref: np.ndarray, gx: np.ndarray, gy: np.ndarray, coef: np.ndarray,
+                 coef_offset: tuple[int, int], ref_mean: float, window_px: float) -> None:
+        self.ref, self.gx, self.gy, self.coef = ref, gx, gy, coef
+        self.coef_offset, self.ref_mean, self.window_px = coef_offset, ref_mean, window_px
+
+    def step(self, r: np.ndarray, c: np.ndarray, u: np.ndarray, v: np.ndarray, finite: np.ndarray,
+             rows: tuple[int, int], own: np.ndarray, with_sigma: bool) -> tuple[np.ndarray, ...]:
+        """The corrected ``(u, v)`` (and ``(N, 2)`` sigmas) of the POIs ``own`` of these (at box
+        rows ``r``, columns ``c``), whose windows hold no POI beyond these; the windowed sums are
+        taken on the box's ``rows`` (first, stop) alone."""
+        ref, coef, window_px = self.ref, self.coef, self.window_px
+        level = ref[r, c] - self.ref_mean
+        basis = (self.gx[r, c], self.gy[r, c], np.ones(len(r)), level)
+        ys = r + np.where(finite, v, 0.0) - self.coef_offset[0]
+        xs = c + np.where(finite, u, 0.0) - self.coef_offset[1]
+        inside = finite & (xs >= 0) & (ys >= 0) & (xs <= coef.shape[1] - 1) & (ys <= coef.shape[0] - 1)
+        warped = ndimage.map_coordinates(coef, [ys, xs], order=SPLINE_ORDER, prefilter=False, mode=SPLINE_MODE)
+        error = np.where(inside, warped - ref[r, c], 0.0)
+        used = inside.astype(np.float64)
+        g0, g1 = rows
+        grid_r = r - g0
+        every = bool(own.all())
+        picked = slice(None) if every else np.flatnonzero(own)
+        at = (grid_r, c) if every else (grid_r[picked], c[picked])
+
+        def window(values: np.ndarray, sigma_px: float = window_px) -> np.ndarray:
+            grid = np.zeros((g1 - g0, ref.shape[1]), np.float32)
+            grid[grid_r, c] = values
+            return cv2.GaussianBlur(grid, (0, 0), sigma_px)[at]
+
+        # Each window's least squares of the error on the motion and a brightness offset and gain
+        # (auto-exposure, flicker: a 5 % gain left 0.036 px RMS on a 0.3 px shift without them).
+        # The windowed sums are kept in float32, one array per entry, and the systems solved in
+        # chunks: a 3000x400 member's 1.2 M POIs cost tens of MB, not a (N, 4, 4) float64 stack.
+        n = len(basis)
+        pairs = [(i, j) for i in range(n) for j in range(i, n)]
+        sums = {pair: window(used * basis[pair[0]] * basis[pair[1]]) for pair in pairs}
+        rhs = [window(used * b * error) for b in basis]
+        a11, a12, a22, cover = sums[0, 0], sums[0, 1], sums[1, 1], sums[2, 2]
+        # Texture in both directions: the structure tensor's smaller eigenvalue at least
+        # MIN_GRADIENT^2 per unit of the window's weight and MIN_ISOTROPY of the larger (stripes,
+        # a flat patch's noise: the dense field stays).
+        trace, det = a11.astype(np.float64) + a22, a11.astype(np.float64) * a22 - a12.astype(np.float64) * a12
+        smaller = 0.5 * (trace - np.sqrt(np.maximum(trace * trace - 4 * det, 0.0)))
+        good = (inside[picked] & (cover >= MIN_COVER) & (smaller >= MIN_GRADIENT ** 2 * np.maximum(cover, 1e-12))
+                & (smaller >= MIN_ISOTROPY * (trace - smaller)))
+        count = len(at[0])
+        step = np.zeros((count, 2))
+        variance = np.full((count, 2), np.nan)
+        if with_sigma:
+            squares = window(used * error * error).astype(np.float64)
+            # The window's squared weights (a Gaussian's square is the Gaussian of sigma / sqrt 2).
+            weight2 = window(used, window_px / np.sqrt(2.0)) / (4.0 * np.pi * window_px ** 2)
+        chosen = np.flatnonzero(good)
+        for start in range(0, chosen.size, SOLVE_CHUNK):
+            part = chosen[start:start + SOLVE_CHUNK]
+            system = np.empty((part.size, n, n))
+            for i, j in pairs:
+                system[:, i, j] = system[:, j, i] = sums[i, j][part]
+            right = np.stack([b[part] for b in rhs], axis=1).astype(np.float64)
+            solution = np.linalg.solve(system, right[..., None])[..., 0]
+            step[part] = solution[:, :2]
+            if with_sigma:
+                # The residual's weighted variance after the step, and the step's covariance.
+                rss = np.maximum(squares[part] - np.sum(solution * right, axis=1), 0.0)
+                cover_part = cover[part].astype(np.float64)
+                scale = rss / cover_part * (weight2[part] / cover_part) / _KERNEL_SQUARES
+                inverse = np.linalg.inv(system)
+                variance[part, 0] = scale * inverse[:, 0, 0]
+                variance[part, 1] = scale * inverse[:, 1, 1]
+        good &= (np.abs(step[:, 0]) <= MAX_STEP_PX) & (np.abs(step[:, 1]) <= MAX_STEP_PX)
+        mine_u, mine_v = u[picked], v[picked]
+        out = (np.where(good, mine_u - step[:, 0], mine_u), np.where(good, mine_v - step[:, 1], mine_v))
+        return out + (np.where(good[:, None], np.sqrt(variance), np.nan),) if with_sigma else out
 
 
 def _smoothed(image: np.ndarray) -> np.ndarray:
