@@ -348,3 +348,20 @@ def test_a_tracked_frame_tries_its_key_s_outline_model_and_its_neighbours_first(
     assert _first_models(2) == (0, 1, 2, 3, shift)
     assert _first_models(len(BLURS) - 1) == (0, len(BLURS) - 2, len(BLURS) - 1, shift)
     assert _first_models(shift) == (0, shift)
+
+
+def test_a_large_windows_solver_scratch_is_not_kept_between_solves(monkeypatch):
+    """The solver's scratch (about 240 bytes a pixel: 2 GB for a whole 4K frame) is kept
+    between solves only up to WORKSPACE_KEEP_BYTES: beyond, it would add to the regions' fits
+    that follow it. The flow is the same either way."""
+    height, width = 96, 128
+    reference = to_u8(textured(height, width, seed=4))
+    current = to_u8(warp_forward(textured(height, width, seed=4), rigid_flow(height, width, 0.0, 1.3, -0.4)))
+    kept = deepflow_module.DeepFlow()
+    kept_flow = kept.calc(reference, current)
+    assert 0 < kept._workspace.nbytes() <= deepflow_module.WORKSPACE_KEEP_BYTES
+    monkeypatch.setattr(deepflow_module, "WORKSPACE_KEEP_BYTES", kept._workspace.nbytes() - 1)
+    dropped = deepflow_module.DeepFlow()
+    first = dropped.calc(reference, current)
+    assert dropped._workspace.nbytes() == 0
+    assert np.array_equal(first, kept_flow) and np.array_equal(dropped.calc(reference, current), kept_flow)

@@ -93,6 +93,8 @@ MAX_REACH_PX = 256.0
 # per solve: a reach that would take more is searched at a coarser downscale (each doubling
 # divides them by 16), so memory stays bounded whatever the motion.
 MATCH_BUDGET_BYTES = 384 * 2**20
+# The variational solver's scratch (see Workspace) is kept between solves up to this size.
+WORKSPACE_KEEP_BYTES = 512 * 2**20
 
 
 def _reach_for(motion_px: float | None) -> float:
@@ -1039,7 +1041,7 @@ class DeepFlow(DenseMethod):
             match = _match_at(self._match, self.last_reach_px, reference.shape, whole_shape)
             grid = deep_matching(reference, current, match, checkpoint=self.check_stop)
             match_flow, match_weight = densify(grid, reference.shape, nearest=True)
-            return refine(
+            flow = refine(
                 reference,
                 current,
                 self._var,
@@ -1048,7 +1050,14 @@ class DeepFlow(DenseMethod):
                 workspace=self._workspace,
                 checkpoint=self.check_stop,
             )
-        return refine(reference, current, self._var, workspace=self._workspace, checkpoint=self.check_stop)
+        else:
+            flow = refine(reference, current, self._var, workspace=self._workspace, checkpoint=self.check_stop)
+        if self._workspace.nbytes() > WORKSPACE_KEEP_BYTES:
+            # A window this large (a whole 4K frame: 2 GB) keeps no scratch between solves: the
+            # regions' fits that follow (a deforming region's windowed step: 1.7 GB) would add
+            # to it, and faulting it in again costs a few per cent of such a solve.
+            self._workspace = Workspace()
+        return flow
 
     def calc(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         check_pair(reference, current)

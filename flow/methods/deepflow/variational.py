@@ -145,6 +145,10 @@ class Workspace:
     def __init__(self) -> None:
         self._buffers: dict[str, np.ndarray] = {}
 
+    def nbytes(self) -> int:
+        """Bytes of scratch held."""
+        return sum(buffer.nbytes for buffer in self._buffers.values())
+
     def array(self, name: str, shape: tuple[int, ...], zero: bool = False) -> np.ndarray:
         """A float32 array of ``shape`` backed by the buffer ``name``."""
         size = math.prod(shape)
