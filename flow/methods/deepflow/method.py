@@ -225,6 +225,12 @@ ALONG_POINTS = 1000
 ALONG_ITERATIONS = 20
 ALONG_TOLERANCE_PX = 2e-3
 ALONG_CLEAR = 0.9
+# The paint's fit also starts this far (px) either side of its start along the member (the
+# minima a codec's whole-pixel copies of a faint paint leave: see _Region.motion), with at most
+# HOP_ITERATIONS steps in a tracked frame (a minimum that near is reached in a few; 20 cost the
+# bench's painted bars 13-26 % of their time, 8 cost 10 %).
+ALONG_HOP_PX = 1.0
+HOP_ITERATIONS = 8
 
 
 def _mismatch(reference: np.ndarray, current: np.ndarray, cols: np.ndarray, rows: np.ndarray,
@@ -373,6 +379,19 @@ class _TextureSigma(tuple):
     texture, whose codec floor (see :meth:`_Region.reported_sigma`) is added once it is chosen."""
 
 
+class _OutlineSigma(tuple):
+    """An outline fit's own sigma ``(sigma_x, sigma_y)`` with what it cannot see of the motion
+    along the member (see :meth:`_Region.motion`), added once the reading is reported:
+    ``ambiguity`` (px), half the farthest along-member motion that matched the POIs about as
+    well as the one taken, and ``texture``, whether the taken one is the paint's own fit (its
+    codec floor then counts along the member)."""
+
+    def __new__(cls, sigma: tuple[float, float], ambiguity: float = 0.0, texture: bool = False) -> _OutlineSigma:
+        made = super().__new__(cls, (float(sigma[0]), float(sigma[1])))
+        made.ambiguity, made.texture = float(ambiguity), bool(texture)
+        return made
+
+
 def _first_models(key: int) -> tuple[int, ...]:
     """The outline models a tracked frame tries first (see TRACKED_SPREAD_RATIO): its chain
     key's ``key`` and the blur models either side of it, the sharp one and the whole-profile
@@ -411,6 +430,8 @@ class _Region:
     along_tried: bool = False  # the chain's key's texture along fit converged: its frames try it too
     along_texture: bool = False  # and the key took its along-member motion: its frames take theirs
     along_seen: tuple | None = None  # the texture's along-member motion of the last two frames taking it
+    along_ambiguity: float = 0.0  # px, the last motion's (see motion): what the POIs could not tell apart along
+    key_ambiguity: float = 0.0  # and the chain key's
 
     @classmethod
     def of(cls, reference: np.ndarray, mask: np.ndarray, label: int, *, member: bool,
@@ -461,12 +482,17 @@ class _Region:
         converges (a chain whose key took it: its key's along-member motion is a past frame's).
         A ``tracked`` frame's fit starts from the motion the chain's texture readings predict
         (see :attr:`along_seen`) and takes ALONG_ITERATIONS steps at most; a full measurement's
-        from the better of the other two, with the fit's full budget.
+        from the better of the other two, with the fit's full budget; each also from ALONG_HOP_PX
+        either side of its start along the member (HOP_ITERATIONS steps at most in a tracked
+        frame), the best match of them the texture's motion. What the POIs could not tell apart
+        along the member is left in :attr:`along_ambiguity` (see :meth:`outline_sigma`).
         """
         u, v = self.member.displacement(fit)
         best = (u, v, _mismatch(reference, current, self.cols, self.rows, u, v), None)
+        tried = [(best[2], float(np.mean(self.along(u, v))))]  # every along-member motion matched
         if along is not None:
             mixed = self._with_along(reference, current, u, v, along)
+            tried.append((mixed[2], float(np.mean(along))))
             if mixed[2] < best[2]:
                 best = mixed
         state = None
@@ -476,16 +502,46 @@ class _Region:
                 last, before = self.along_seen
                 start_u, start_v = self._mix(u, v, last if before is None else 2.0 * last - before)
             start = self.along_fit.params_from_flow(start_u, start_v, self.rows, self.cols)
-            found = None if start is None else self.along_fit.fit_translation(
-                current, start, max_iterations=ALONG_ITERATIONS if tracked else None)
-            if found is not None and found.converged:
-                state = "converged"
+            starts = [] if start is None else [start]
+            if start is not None:
+                # A faint paint a codec rebuilt holds its motion along the member in part only:
+                # the fit has minima a pixel or so apart (the codec's whole-pixel copies), and
+                # the one next to a start the dense flow froze need not be the POIs' best match
+                # (whether the chain's frames try the paint is its own start's, as before).
+                t_dir = self.member.axes[:, 0]
+                for sign in (-1.0, 1.0):
+                    other = start.copy()
+                    other[0] += sign * ALONG_HOP_PX * t_dir[0]
+                    other[3] += sign * ALONG_HOP_PX * t_dir[1]
+                    starts.append(other)
+            candidate = None
+            for index, begin in enumerate(starts):
+                budget = (ALONG_ITERATIONS if index == 0 else HOP_ITERATIONS) if tracked else None
+                found = self.along_fit.fit_translation(current, begin, max_iterations=budget)
+                if not found.converged:
+                    continue
+                if index == 0:
+                    state = "converged"
                 own = self.along(*self.along_fit.field(found.params, self.rows, self.cols))
                 mixed = self._with_along(reference, current, u, v, own)
-                if texture_first or mixed[2] < ALONG_CLEAR * best[2]:
-                    best, state = mixed, "taken"
-                    self.along_seen = (own, None if self.along_seen is None else self.along_seen[0])
+                tried.append((mixed[2], float(np.mean(own))))
+                if candidate is None or mixed[2] < candidate[2]:
+                    candidate = mixed
+            if candidate is not None and (texture_first or candidate[2] < ALONG_CLEAR * best[2]):
+                best, state = candidate, "taken"
+                own = candidate[3]
+                self.along_seen = (own, None if self.along_seen is None else self.along_seen[0])
+        # What the POIs cannot tell apart along the member: every motion tried that matched them
+        # not clearly worse than the one taken (within 1 / ALONG_CLEAR of its mismatch).
+        taken = float(np.mean(self.along(best[0], best[1])))
+        self.along_ambiguity = max((abs(a - taken) / 2.0 for m, a in tried if m * ALONG_CLEAR <= best[2]),
+                                   default=0.0)
         return (*best, state)
+
+    def outline_sigma(self, sigma: tuple[float, float], state: str | None) -> _OutlineSigma:
+        """An outline reading's own ``sigma`` with what its last :meth:`motion` could not see
+        along the member (see :class:`_OutlineSigma`)."""
+        return _OutlineSigma(sigma, self.along_ambiguity, state == "taken")
 
     def _mix(self, u: np.ndarray, v: np.ndarray, along: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The motion ``(u, v)`` across the member with ``along`` along it."""
@@ -518,12 +574,28 @@ class _Region:
         quadrature (the fit's own sigma does not see an error common to the region, which a
         lossy codec leaves; :func:`flow.methods.deepflow.codecfloor.codec_floor`), measured on
         this region the first time it is needed. Other readings' and lossless frames' as they are."""
+        if isinstance(sigma, _OutlineSigma):
+            # Along the member: the ambiguity, and the paint's codec floor where the paint's
+            # own fit gave the motion there (a codec copies a faint paint's blocks whole:
+            # x264 at CRF 18 left a paint of 2 grey levels sliding +-1.5 px along its bar read
+            # in whole pixels, 0.3-1.5 px off, where the fit said 0.005 px).
+            extra = sigma.ambiguity
+            if sigma.texture and self.codec_crf is not None:
+                fx, fy = self._codec_floor()
+                t = self.member.axes[:, 0]
+                extra = float(np.hypot(extra, np.hypot(t[0] * fx, t[1] * fy)))
+            t = self.member.axes[:, 0]
+            return (float(np.hypot(sigma[0], t[0] * extra)), float(np.hypot(sigma[1], t[1] * extra)))
         if not isinstance(sigma, _TextureSigma) or self.codec_crf is None:
             return tuple(sigma)
+        return tuple(float(np.hypot(s, f)) for s, f in zip(sigma, self._codec_floor(), strict=True))
+
+    def _codec_floor(self) -> tuple[float, float]:
+        """The region's codec floor (px, x and y), measured the first time it is needed."""
         if self.codec_floor_px is None:
             floor = codec_floor(self.reference, self.rows, self.cols, self.codec_crf)
             self.codec_floor_px = tuple(f if np.isfinite(f) else 0.0 for f in floor)
-        return tuple(float(np.hypot(s, f)) for s, f in zip(sigma, self.codec_floor_px, strict=True))
+        return self.codec_floor_px
 
 
 def _clear_of(edges: MemberEdges | None, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -1213,7 +1285,7 @@ class DeepFlow(DenseMethod):
                     reference, current, fit, region.along(dense_u, dense_v), texture=True)
                 region.along_tried, region.along_texture = state is not None, state == "taken"
                 # The edges must not make the POIs' own match worse than the dense flow's.
-                sigma = region.member.mean_sigma(fit)
+                sigma = region.outline_sigma(region.member.mean_sigma(fit), state)
                 if min(sigma) > OUTLINE_MAX_SIGMA_PX:
                     self._count(None, "outline_imprecise")
                 elif edges <= MATCH_TOLERANCE * _mismatch(reference, current, region.cols, region.rows,
@@ -1246,6 +1318,7 @@ class DeepFlow(DenseMethod):
         if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
             region.model, region.theta, region.key_along = "outline", fit.params, along
             region.key_outline = (fit.model, fit.systematic, fit.spread)
+            region.key_ambiguity = region.along_ambiguity
         elif self._chaining and model == "affine":
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
             region.key_rms = texture.rms
@@ -1295,7 +1368,11 @@ class DeepFlow(DenseMethod):
         now_u, now_v = member.poi_field.uv(fit.params)
         before_u, before_v = member.poi_field.uv(region.theta)
         step = float(np.hypot(np.mean(now_u - before_u), np.mean(now_v - before_v)))
-        sigma = member.mean_sigma(fit)
+        # Along the member a tracked frame has the key's motion unless the paint reads its own:
+        # what the key could not tell apart there, it cannot either.
+        if state != "taken":
+            region.along_ambiguity = max(region.along_ambiguity, region.key_ambiguity)
+        sigma = region.outline_sigma(member.mean_sigma(fit), state)
         if not (_in_band(edges, region.key_mismatch) and step <= MAX_WARM_STEP_PX
                 and min(sigma) <= OUTLINE_MAX_SIGMA_PX):
             return None
