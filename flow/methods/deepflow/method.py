@@ -516,7 +516,16 @@ class _Region:
                     starts.append(other)
             candidate = None
             for index, begin in enumerate(starts):
-                budget = (ALONG_ITERATIONS if index == 0 else HOP_ITERATIONS) if tracked else None
+                if index > 0 and tracked and not texture_first:
+                    # A tracked frame of a chain that does not take the paint's motion samples the
+                    # POIs' match at a hop instead of fitting from it (a fit from each cost the
+                    # bench's painted bars 10-15 % of their time: their faint paint matches a pixel
+                    # along about as well, and is not taken).
+                    hop = self._with_along(reference, current, u, v,
+                                           self.along(*self.along_fit.field(begin, self.rows, self.cols)))
+                    tried.append((hop[2], float(np.mean(hop[3]))))
+                    continue
+                budget = HOP_ITERATIONS if index > 0 else (ALONG_ITERATIONS if tracked else None)
                 found = self.along_fit.fit_translation(current, begin, max_iterations=budget)
                 if not found.converged:
                     continue
