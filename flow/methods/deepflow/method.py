@@ -523,7 +523,10 @@ class _Region:
                     # along about as well, and is not taken).
                     hop = self._with_along(reference, current, u, v,
                                            self.along(*self.along_fit.field(begin, self.rows, self.cols)))
-                    tried.append((hop[2], float(np.mean(hop[3]))))
+                    if hop[2] <= best[2]:
+                        # (An unrefined position counts only where it matches at least as well:
+                        # a faint paint matches a pixel along nearly as well almost everywhere.)
+                        tried.append((hop[2], float(np.mean(hop[3]))))
                     continue
                 budget = HOP_ITERATIONS if index > 0 else (ALONG_ITERATIONS if tracked else None)
                 found = self.along_fit.fit_translation(current, begin, max_iterations=budget)
