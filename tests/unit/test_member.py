@@ -192,3 +192,41 @@ def test_fine_fit_stopped_at_convergence_reads_what_every_step_reads(blur, monke
     np.testing.assert_allclose(stopped[0][ok], every[0][ok], rtol=0, atol=1e-7)  # the outline, px
     for got, want in zip(stopped[1:4], every[1:4], strict=True):
         np.testing.assert_allclose(got[ok], want[ok], rtol=1e-5, atol=1e-6)
+
+
+def test_a_patch_drawn_wider_than_tall_inside_a_column_is_oriented_by_the_columns_edges(tmp_path):
+    """A 100x50 patch inside a 124 px wide vertical bar (`benchmarks/bench_window.py`'s 720p
+    clip): the mask's longer side is across the bar, but its usable outlines (the bar's edges,
+    beyond the patch's short sides) say the bar runs vertically. The member's axes follow the
+    outlines, so the motion across the bar is the outlines' own; before 2026-12-05 it was taken
+    as the motion along the member, from the dense flow: the clip's first 12 frames 0.26 px RMS,
+    now 0.058 (its 30 frames 0.090 -> 0.041; 0.036 on 2026-12-02, before the matching's window
+    followed the motion)."""
+    import csv
+
+    import cv2
+    from _lowtex_clip import encode
+
+    from flow.cli import main
+
+    clip = make_clip(seed=5, frames=12, height=720, width=1280, bar_width=124, mask_margin=12,
+                     amplitude=3.0, frequency_hz=2.1)
+    rows = np.flatnonzero(clip.mask.any(axis=1))
+    cols = np.flatnonzero(clip.mask.any(axis=0))
+    patch = np.zeros_like(clip.mask)
+    top = int(rows[len(rows) // 2])
+    patch[top:top + 50, cols[0]:cols[0] + 100] = True
+    assert (patch <= clip.mask).all()
+    edges = MemberEdges.from_reference(clip.frames[0], patch)
+    assert abs(edges.axes[1, 0]) > 0.99  # along the member: y, the bar's length
+    assert np.mean(~edges.vertical) > 0.75  # the usable profiles: mostly rows across the bar's edges
+    video = encode(clip, tmp_path / "bar.mp4", crf=18)
+    cv2.imwrite(str(tmp_path / "patch.png"), patch.astype(np.uint8) * 255)
+    out = tmp_path / "patch.csv"
+    assert main(["track", str(video), "--mask", str(tmp_path / "patch.png"), "--out", str(out), "--no-progress"]) == 0
+    with out.open() as handle:
+        read = np.array([float(r["dx_px"]) for r in csv.DictReader(handle)])
+    truth = clip.truth_px - clip.truth_px[0]
+    rmse = float(np.sqrt(np.mean((read - truth) ** 2)))
+    print(f"patch across a column: RMSE {rmse:.3f} px")
+    assert rmse < 0.1

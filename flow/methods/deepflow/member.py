@@ -97,6 +97,9 @@ N_ACROSS = 3
 N_PARAMS = 6
 # Outline models whose profiles agree within this factor of the best one's are plausible.
 PLAUSIBLE = 4.0
+# The member's axes follow its usable outlines where their normals lie this many times as much
+# along the mask's longer side as across it (see MemberEdges._orient_by_outline).
+ORIENT_RATIO = 4.0
 # Floor of the robust scale of the standardised profile residuals.
 MIN_SCALE = 0.5
 # A reference profile whose model misfit exceeds this many times the median is not used.
@@ -614,10 +617,33 @@ class MemberEdges:
         self.axes = axes[:, order]
         self.half = np.maximum(2.0 * np.sqrt(np.maximum(evals[order], 0.0)), 1.0)
         self.poi_field = _Field(pts[:, 0], pts[:, 1], self.centre, self.axes, self.half)
+        self._mask = mask
         self._profiles(ref)
+        del self._mask
         return self
 
     # -- reference analysis ------------------------------------------------------------------------
+
+    def _orient_by_outline(self) -> None:
+        """The member's long axis from its outline where the mask's shape says otherwise: the
+        mask's longer side is taken as the member's length (its axes, see :meth:`build`), but a
+        patch drawn wider than tall inside a column has its outlines (the column's edges, the
+        usable profiles) on its short sides. Where the usable profiles' normals lie more than
+        ORIENT_RATIO times as much along that axis as across it, the axes are swapped: the
+        outlines then measure the motion across the member, and along it the dense flow and the
+        paint do (before 2026-12-05 such a patch read its motion across the column from the
+        dense flow: bench_window's 720p bar, frame 1 0.19 px of 0.40)."""
+        if len(self.px) == 0:
+            return
+        norm = np.sqrt(1.0 + self.slope ** 2)
+        normals = np.where(self.vertical[:, None], np.column_stack([-self.slope, np.ones_like(norm)]),
+                           np.column_stack([np.ones_like(norm), -self.slope])) / norm[:, None]
+        along, across = np.sum((normals @ self.axes) ** 2, axis=0)
+        if along > ORIENT_RATIO * across:
+            self.axes = self.axes[:, ::-1].copy()
+            self.half = self.half[::-1].copy()
+            ys, xs = np.nonzero(self._mask)
+            self.poi_field = _Field(xs.astype(np.float64), ys.astype(np.float64), self.centre, self.axes, self.half)
 
     def _profiles(self, ref: np.ndarray) -> None:
         support = self.support
@@ -666,6 +692,7 @@ class MemberEdges:
         self.py = np.where(self.vertical, boundary, self.line).astype(np.float64)
         for name in ("line", "side", "vertical", "slope", "polarity", "px", "py"):
             setattr(self, name, getattr(self, name)[keep])
+        self._orient_by_outline()
         self.field = _Field(self.px, self.py, self.centre, self.axes, self.half)
         ones = np.ones(len(self.px))
         # Outline displacement along its line: u - s v (rows) or v - s u (columns).
