@@ -187,8 +187,8 @@ class _Box:
                 & (smaller >= MIN_ISOTROPY * (trace - smaller)))
         count = len(at[0])
         step = np.zeros((count, 2))
-        variance = np.full((count, 2), np.nan)
         if with_sigma:
+            variance = np.full((count, 2), np.nan)
             squares = window(used * error * error).astype(np.float64)
             # The window's squared weights (a Gaussian's square is the Gaussian of sigma / sqrt 2).
             weight2 = window(used, window_px / np.sqrt(2.0)) / (4.0 * np.pi * window_px ** 2)

@@ -616,10 +616,8 @@ class MemberEdges:
         order = np.argsort(evals)[::-1]
         self.axes = axes[:, order]
         self.half = np.maximum(2.0 * np.sqrt(np.maximum(evals[order], 0.0)), 1.0)
+        self._profiles(ref)  # (which may turn the axes to the outlines: _orient_by_outline)
         self.poi_field = _Field(pts[:, 0], pts[:, 1], self.centre, self.axes, self.half)
-        self._mask = mask
-        self._profiles(ref)
-        del self._mask
         return self
 
     # -- reference analysis ------------------------------------------------------------------------
@@ -642,8 +640,6 @@ class MemberEdges:
         if along > ORIENT_RATIO * across:
             self.axes = self.axes[:, ::-1].copy()
             self.half = self.half[::-1].copy()
-            ys, xs = np.nonzero(self._mask)
-            self.poi_field = _Field(xs.astype(np.float64), ys.astype(np.float64), self.centre, self.axes, self.half)
 
     def _profiles(self, ref: np.ndarray) -> None:
         support = self.support

@@ -550,10 +550,11 @@ class _Region:
                                    default=0.0)
         return (*best, state)
 
-    def outline_sigma(self, sigma: tuple[float, float], state: str | None) -> _OutlineSigma:
+    def outline_sigma(self, sigma: tuple[float, float], state: str | None,
+                      at_least: float = 0.0) -> _OutlineSigma:
         """An outline reading's own ``sigma`` with what its last :meth:`motion` could not see
-        along the member (see :class:`_OutlineSigma`)."""
-        return _OutlineSigma(sigma, self.along_ambiguity, state == "taken")
+        along the member (see :class:`_OutlineSigma`), no less than ``at_least`` (px)."""
+        return _OutlineSigma(sigma, max(self.along_ambiguity, at_least), state == "taken")
 
     def _mix(self, u: np.ndarray, v: np.ndarray, along: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The motion ``(u, v)`` across the member with ``along`` along it."""
@@ -591,12 +592,11 @@ class _Region:
             # own fit gave the motion there (a codec copies a faint paint's blocks whole:
             # x264 at CRF 18 left a paint of 2 grey levels sliding +-1.5 px along its bar read
             # in whole pixels, 0.3-1.5 px off, where the fit said 0.005 px).
+            t = self.member.axes[:, 0]
             extra = sigma.ambiguity
             if sigma.texture and self.codec_crf is not None:
                 fx, fy = self._codec_floor()
-                t = self.member.axes[:, 0]
                 extra = float(np.hypot(extra, np.hypot(t[0] * fx, t[1] * fy)))
-            t = self.member.axes[:, 0]
             return (float(np.hypot(sigma[0], t[0] * extra)), float(np.hypot(sigma[1], t[1] * extra)))
         if not isinstance(sigma, _TextureSigma) or self.codec_crf is None:
             return tuple(sigma)
@@ -1382,9 +1382,8 @@ class DeepFlow(DenseMethod):
         step = float(np.hypot(np.mean(now_u - before_u), np.mean(now_v - before_v)))
         # Along the member a tracked frame has the key's motion unless the paint reads its own:
         # what the key could not tell apart there, it cannot either.
-        if state != "taken":
-            region.along_ambiguity = max(region.along_ambiguity, region.key_ambiguity)
-        sigma = region.outline_sigma(member.mean_sigma(fit), state)
+        sigma = region.outline_sigma(member.mean_sigma(fit), state,
+                                     at_least=0.0 if state == "taken" else region.key_ambiguity)
         if not (_in_band(edges, region.key_mismatch) and step <= MAX_WARM_STEP_PX
                 and min(sigma) <= OUTLINE_MAX_SIGMA_PX):
             return None
