@@ -208,12 +208,48 @@ def test_a_lossy_codecs_error_is_measured_into_the_texture_sigma_and_a_lossless_
     region = _Region.of(reference, mask, 1, member=False, texture=True, bias_correction=False, codec_crf=23.0)
     reported = region.reported_sigma(_TextureSigma(own))
     assert np.allclose(reported, np.hypot(own, region.codec_floor_px))
-    assert np.allclose(region.codec_floor_px, lossy)
+    # (The region's own fit smooths a lossy stream's frames first: its floor is that fit's.)
+    assert np.allclose(region.codec_floor_px,
+                       codec_floor(reference, rows, cols, 23.0, presmooth_px=region.texture.presmooth_px))
     assert region.reported_sigma((0.01, 0.02)) == (0.01, 0.02)  # an outline's or the dense flow's
     lossless = _Region.of(reference, mask, 1, member=False, texture=True)
     assert lossless.reported_sigma(_TextureSigma(own)) == tuple(own)
     with pytest.raises(ValueError, match="crf"):
         codec_floor(reference, rows, cols, 60.0)
+
+
+def test_a_lossy_streams_texture_fits_smooth_both_frames_and_a_lossless_ones_do_not() -> None:
+    """On a lossy stream a region's texture fit (and the codec floor's that measures it) smooths
+    both frames by CODEC_PRESMOOTH_PX (a codec's ringing about sharp edges
+    reads as motion of the whole region: tests/integration/test_scene_kinds.py's ``windows``);
+    lossless frames are fitted as they are. The smoothing leaves an exact shift's reading alone and
+    the texture's strength (which decides whether the texture is trusted) as the frame's own."""
+    from flow.methods.deepflow.method import CODEC_PRESMOOTH_PX, _Region
+
+    ys, xs = np.mgrid[0:96, 0:120]
+    # Sharp-edged windows on a 12 px grid with a faint texture (a facade), periodic in the frame.
+    windows = 160.0 - 80.0 * ((xs % 12 < 6) & (ys % 12 < 6)) + 4.0 * (textured(96, 120, seed=2) - 128) / 40
+    reference = ndimage.gaussian_filter(windows, 0.6, mode="wrap")
+    rows, cols = _region(reference.shape, (24, 72, 32, 88))
+    plain = RegionFit(reference, rows, cols, bias_correction=False)
+    smooth = RegionFit(reference, rows, cols, bias_correction=False, presmooth_px=CODEC_PRESMOOTH_PX)
+    current = shifted(reference, 0.3, -0.2)
+    found = smooth.fit(current, np.zeros(6))
+    assert found.converged
+    u, v = smooth.field(found.params, rows, cols)
+    assert abs(u.mean() - 0.3) < 0.005 and abs(v.mean() + 0.2) < 0.005
+    assert smooth.gradient_rms == plain.gradient_rms
+    assert not np.array_equal(smooth._jacobian, plain._jacobian)  # the fit's own images are smoothed
+
+    mask = np.zeros(reference.shape, bool)
+    mask[rows, cols] = True
+    lossy = _Region.of(reference, mask, 1, member=True, texture=True, bias_correction=False, codec_crf=18.0)
+    assert lossy.texture.presmooth_px == CODEC_PRESMOOTH_PX
+    assert lossy.along_fit is None or lossy.along_fit.presmooth_px == 0.0  # the paint's quick fit: as it is
+    lossless = _Region.of(reference, mask, 1, member=True, texture=True)
+    assert lossless.texture.presmooth_px == 0.0
+    with pytest.raises(ValueError, match="presmooth_px"):
+        RegionFit(reference, rows, cols, presmooth_px=-1.0)
 
 
 def test_a_large_regions_codec_floor_is_measured_in_a_bounded_window(monkeypatch) -> None:

@@ -82,11 +82,13 @@ def x264_round_trip(frames: np.ndarray, crf: float) -> np.ndarray | None:
     return np.frombuffer(decoded, np.uint8).reshape(count, height, width)
 
 
-def codec_floor(reference: np.ndarray, rows: np.ndarray, cols: np.ndarray, crf: float) -> tuple[float, float]:
+def codec_floor(reference: np.ndarray, rows: np.ndarray, cols: np.ndarray, crf: float, *,
+                presmooth_px: float = 0.0) -> tuple[float, float]:
     """The rms error ``(u, v)`` (px) of the texture fit of the region ``rows, cols`` of
     ``reference`` on copies of it shifted by known amounts and passed through libx264 at
     ``crf`` (see the module's docstring); ``(nan, nan)`` where it cannot be measured (no
-    encoder, a region too small, fits that do not converge)."""
+    encoder, a region too small, fits that do not converge). ``presmooth_px``: the fit's
+    pre-smoothing, as the readings' own fit has it (see :class:`RegionFit`)."""
     if not (np.isfinite(crf) and 0 <= crf <= 51):
         raise ValueError(f"crf must be a number in 0..51, got {crf!r}")
     rows = np.asarray(rows, np.intp)
@@ -115,7 +117,8 @@ def codec_floor(reference: np.ndarray, rows: np.ndarray, cols: np.ndarray, crf: 
     if decoded is None:
         return failed
     # The decoded first copy is the reference, as a decoded frame is in a measurement.
-    fit = RegionFit(decoded[0].astype(np.float64), rows[inside] - r0, cols[inside] - c0, bias_correction=False)
+    fit = RegionFit(decoded[0].astype(np.float64), rows[inside] - r0, cols[inside] - c0, bias_correction=False,
+                    presmooth_px=presmooth_px)
     errors = []
     for frame, (dx, dy) in zip(decoded[1:], shifts[1:], strict=True):
         # Started at the known shift: the floor is the error at the criterion's minimum, not the

@@ -206,6 +206,22 @@ TRACKED_SPREAD_RATIO = 1.2
 # this factor of the dense flow's plus MATCH_SLACK grey levels (sensor noise moves both alike).
 MATCH_TOLERANCE = 1.1
 MATCH_SLACK = 0.5
+# On a lossy stream the affine texture fits (the region's, the background's, and the codec floor's
+# that measures them) smooth both frames by CODEC_PRESMOOTH_PX first (see
+# flow.methods.deepflow.regionfit): x264 rings about sharp edges and rebuilds each block's finest
+# detail its own way, which the fit reads as motion of the whole region. Measured (defaults, H.264
+# CRF 18-23, scene kinds drawn outside the bench): a panel of sharp-edged windows (16 px period)
+# 0.097 -> 0.037 px RMS, slope 1.036 -> 1.004 (DIS 0.037); its fit started at the truth, periods 16 /
+# 12 / 8 (CRF 23) 0.069 / 0.036 / 0.059 -> 0.037 / 0.034 / 0.054, sharp-edged random tiles 0.047 ->
+# 0.031 (0.5 px of smoothing: 0.043 / 0.033 / 0.052 / 0.035). The bench's textured clips move by a
+# few thousandths: g1 0.0302 -> 0.0308, g2 0.0442 -> 0.0447, g5 0.0318 -> 0.0332, g7 0.0186 ->
+# 0.0187, g8 0.0371 -> 0.0367 (slope 0.911 -> 0.916); lossless frames (DIC images) are fitted as
+# they are. Not the paint's quick fit along a member (ALONG_POINTS): smoothed, more of the bench's
+# faint paints converged and their chains tried them in every frame, for the same readings and
+# 17-19 % of the painted bars' time (a faint paint sliding along its bar read 0.166 instead of
+# 0.190 px).
+CODEC_PRESMOOTH_PX = 0.7
+
 # An outline fixes a member's motion across it; along the member (a column settling, a deck
 # moving lengthwise, a bar sliding along its axis) it has only the ends of its grown mask, and
 # the dense flow's smoothing over a faint paint reads that motion about half (a painted bar of
@@ -439,7 +455,9 @@ class _Region:
         rows, cols = np.nonzero(mask)
         height, width = reference.shape
         edges = MemberEdges.from_reference(reference, mask) if member else None
-        fit = RegionFit(reference, rows, cols, bias_correction=bias_correction) if texture and rows.size >= 8 else None
+        presmooth = _presmooth(codec_crf)
+        fit = (RegionFit(reference, rows, cols, bias_correction=bias_correction, presmooth_px=presmooth)
+               if texture and rows.size >= 8 else None)
         if fit is not None and not fit.textured:
             fit = None
         prior_rows = prior_cols = np.zeros(0, np.intp)
@@ -605,7 +623,8 @@ class _Region:
     def _codec_floor(self) -> tuple[float, float]:
         """The region's codec floor (px, x and y), measured the first time it is needed."""
         if self.codec_floor_px is None:
-            floor = codec_floor(self.reference, self.rows, self.cols, self.codec_crf)
+            floor = codec_floor(self.reference, self.rows, self.cols, self.codec_crf,
+                                presmooth_px=_presmooth(self.codec_crf))
             self.codec_floor_px = tuple(f if np.isfinite(f) else 0.0 for f in floor)
         return self.codec_floor_px
 
@@ -854,8 +873,14 @@ def _clearly(seen: np.ndarray, this: np.ndarray, other: np.ndarray) -> bool:
             and misfit <= SEEN_RATIO * float(np.sum((seen - other) ** 2)))
 
 
+def _presmooth(codec_crf: float | None) -> float:
+    """The texture fits' pre-smoothing (px): CODEC_PRESMOOTH_PX on a lossy stream (``codec_crf``
+    given), none on lossless frames."""
+    return 0.0 if codec_crf is None else CODEC_PRESMOOTH_PX
+
+
 def _background_texture(reference: np.ndarray, read: np.ndarray | None, *,
-                        bias_correction: bool) -> RegionFit | None:
+                        bias_correction: bool, codec_crf: float | None = None) -> RegionFit | None:
     """The texture fit of the background points the driver reads (camera-motion compensation),
     where they have a texture strong enough to be taken (see MIN_TEXTURE_GRADIENT); else None
     (their dense flow is read).
@@ -870,7 +895,7 @@ def _background_texture(reference: np.ndarray, read: np.ndarray | None, *,
         return None
     # (The sub-pixel bias correction, on lossless frames, resamples the points' bounding box
     # once: for points spread around a member, most of the frame.)
-    fit = RegionFit(reference, rows, cols, bias_correction=bias_correction)
+    fit = RegionFit(reference, rows, cols, bias_correction=bias_correction, presmooth_px=_presmooth(codec_crf))
     if not fit.textured or min(fit.gradient_rms) < MIN_TEXTURE_GRADIENT:
         return None
     return fit
@@ -1047,7 +1072,8 @@ class DeepFlow(DenseMethod):
         mask = np.asarray(mask)
         self._poi_rows, self._poi_cols = (np.nonzero(mask) if self._crop_on and mask.shape == reference.shape
                                           else (np.zeros(0, np.intp),) * 2)
-        self._background = (_background_texture(reference, read, bias_correction=self._bias_on)
+        self._background = (_background_texture(reference, read, bias_correction=self._bias_on,
+                                                codec_crf=self._codec_crf)
                             if self._texture_on else None)
         self._read_rows, self._read_cols = (np.nonzero(read) if self._background is not None
                                             else (np.zeros(0, np.intp),) * 2)
