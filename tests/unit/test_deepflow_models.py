@@ -75,6 +75,31 @@ def test_a_strong_texture_deforming_beyond_affine_is_read_by_the_dense_flow(kind
         assert rmse < 0.002 and not np.array_equal(flow[poi], dense_flow[poi])
 
 
+@pytest.mark.parametrize("kind", ["torn", "sine"])
+def test_a_dense_flow_that_tears_a_rigid_region_does_not_outvote_its_texture(kind) -> None:
+    """The dense flow, not the region, may depart from an affine field (a facade of sharp-edged
+    windows: DeepFlow tore across its grid and two keys read 1.08 and 0.71 px off): where the
+    texture's affine fit matches the region's pixels clearly better than the refined dense field
+    (DEFORM_MATCH_RATIO), the affine fit is read. Given the same torn field, a truly deformed
+    region keeps the dense reading (the check can fail)."""
+    x = np.arange(sine.WIDTH, dtype=np.float64)
+    wave = SINE_AMPLITUDE_PX * np.sin(2 * np.pi * x / SINE_PERIOD_PX)
+    reference, current, poi = _speckle_pair(0.4 if kind == "torn" else 0.4 + wave)
+    method = deepflow_module.DeepFlow()
+    method.bind(reference, poi)
+    region = method._regions[0]
+    flow = np.zeros(reference.shape + (2,), np.float32)
+    flow[..., 0] = 0.4 + wave[None, :]  # the region's truth for "sine", a tear for "torn"
+    chosen = method._full(reference, current, flow, region)
+    assert method.counts["why_dense_deforms"] + method.counts["why_texture_matches_better"] == 1
+    if kind == "torn":
+        assert method.counts["why_texture_matches_better"] == 1 and method.counts["affine_readings"] == 1
+        assert abs(float(np.mean(chosen[0])) - 0.4) < 0.01
+    else:
+        assert method.counts["why_dense_deforms"] == 1 and chosen is None
+        assert np.abs(flow[poi, 0] - (0.4 + np.broadcast_to(wave, poi.shape)[poi])).mean() < 0.05
+
+
 def _sliding_bar(paint_std: float, paint_px: float, noise_grey: float = 0.0) -> tuple:
     """A vertical bar over a textured wall, painted with a texture of ``paint_std`` grey levels
     smoothed over ``paint_px``; it runs beyond the POIs at both ends, so along it (y) the

@@ -342,6 +342,14 @@ HIDDEN_SHARE = 0.25
 DEFORM_RATIO = 4.0
 DEFORM_FLOOR_PX = 0.005
 DEFORM_CODEC_FLOOR_PX = 0.25
+# A region the dense flow shows deforming is read from that field (refined, see localfit) unless
+# the texture's affine fit matches the region's pixels (mean |difference|, see _mismatch) below
+# DEFORM_MATCH_RATIO times the refined field's: a deforming region's field matches at least as
+# well as any affine one. Measured: DIC Challenge Sample 14's sine and Sample 12's plate (true
+# deformations) 1.02-1.52 times the field's mismatch; a facade of sharp-edged windows whose dense
+# flow tore across its grid (bench_scene_kinds' windows, two keys read 1.08 and 0.71 px off) 0.28
+# and 0.51.
+DEFORM_MATCH_RATIO = 0.9
 
 # An outline whose own standard uncertainty exceeds this (px) on both axes cannot resolve a
 # sub-pixel motion by its own account (the tool's limit for a clip's typical uncertainty is
@@ -361,6 +369,8 @@ REASONS = {
     "texture_no_outline": "the strong texture however imprecise; no outline against a still background",
     "dense_only": "the dense flow; neither a strong texture nor an outline against a still background",
     "dense_deforms": "the dense flow; the strong texture shows the region deforming beyond an affine field",
+    "texture_matches_better": "the strong texture's affine fit; the dense flow showed the region deforming, "
+                              "but its refined field matched the region's pixels clearly worse",
     "outline_background_unseen": "an outline refused: a strong texture more precise than it, and the "
                                  "background never seen still or moving with the member while it moved",
     "outline_background_moves": "an outline refused: the background beyond it moves part of the way "
@@ -1340,12 +1350,21 @@ class DeepFlow(DenseMethod):
             self._count(None, "outline_background_unseen")
             outline = None
         chosen, model, reason = _choose(affine, outline, strong, deforms)
-        self._count(model, reason)
+        refined = None
         if reason == "dense_deforms":
             # The dense field read, its small deformations' shortfall taken off (see localfit),
-            # and each POI's own uncertainty for the field file.
+            # and each POI's own uncertainty for the field file ...
             refined = refine_locally(reference, current, region.rows, region.cols, dense_u, dense_v,
                                      with_sigma=self.want_field_sigma)
+            # ... unless the texture's affine fit matches the region's pixels clearly better than
+            # that field: the dense flow, not the region, departed from an affine field (see
+            # DEFORM_MATCH_RATIO).
+            if affine is not None and (_mismatch(reference, current, region.cols, region.rows, affine[0], affine[1])
+                                       < DEFORM_MATCH_RATIO * _mismatch(reference, current, region.cols,
+                                                                        region.rows, refined[0], refined[1])):
+                chosen, model, reason, refined = affine, "affine", "texture_matches_better", None
+        self._count(model, reason)
+        if refined is not None:
             flow[region.rows, region.cols, 0] = refined[0]
             flow[region.rows, region.cols, 1] = refined[1]
             if self.want_field_sigma:
