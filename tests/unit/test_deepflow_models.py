@@ -90,11 +90,13 @@ def test_a_dense_flow_that_tears_a_rigid_region_does_not_outvote_its_texture(kin
     region = method._regions[0]
     flow = np.zeros(reference.shape + (2,), np.float32)
     flow[..., 0] = 0.4 + wave[None, :]  # the region's truth for "sine", a tear for "torn"
+    given = flow.copy()
     chosen = method._full(reference, current, flow, region)
     assert method.counts["why_dense_deforms"] + method.counts["why_texture_matches_better"] == 1
     if kind == "torn":
         assert method.counts["why_texture_matches_better"] == 1 and method.counts["affine_readings"] == 1
         assert abs(float(np.mean(chosen[0])) - 0.4) < 0.01
+        assert np.array_equal(flow, given)  # the torn field is not written back as the region's
     else:
         assert method.counts["why_dense_deforms"] == 1 and chosen is None
         assert np.abs(flow[poi, 0] - (0.4 + np.broadcast_to(wave, poi.shape)[poi])).mean() < 0.05

@@ -248,6 +248,10 @@ def test_a_lossy_streams_texture_fits_smooth_both_frames_and_a_lossless_ones_do_
     assert lossy.along_fit is None or lossy.along_fit.presmooth_px == 0.0  # the paint's quick fit: as it is
     lossless = _Region.of(reference, mask, 1, member=True, texture=True)
     assert lossless.texture.presmooth_px == 0.0
+    # Each fit's sigma gets its own fit's floor: the texture's smoothed, the paint's quick fit's not.
+    from flow.methods.deepflow.codecfloor import codec_floor
+    assert np.allclose(lossy._codec_floor(), codec_floor(reference, rows, cols, 18.0, presmooth_px=CODEC_PRESMOOTH_PX))
+    assert np.allclose(lossy._codec_floor(along=True), codec_floor(reference, rows, cols, 18.0))
     with pytest.raises(ValueError, match="presmooth_px"):
         RegionFit(reference, rows, cols, presmooth_px=-1.0)
 

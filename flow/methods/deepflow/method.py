@@ -451,6 +451,7 @@ class _Region:
     reference: np.ndarray | None = None  # kept for the codec floor (None: the frames are lossless)
     codec_crf: float | None = None  # the lossy stream's quality (see flow.methods.deepflow.codecfloor)
     codec_floor_px: tuple[float, float] | None = None  # measured on the first texture reading
+    along_floor_px: tuple[float, float] | None = None  # the paint's, on its first along reading (see _codec_floor)
     along_fit: RegionFit | None = None  # the quick translation fit of the along-member motion
     texture_strength: tuple[float, float] = (0.0, 0.0)  # the texture's strength away from the outline
     along_tried: bool = False  # the chain's key's texture along fit converged: its frames try it too
@@ -623,20 +624,27 @@ class _Region:
             t = self.member.axes[:, 0]
             extra = sigma.ambiguity
             if sigma.texture and self.codec_crf is not None:
-                fx, fy = self._codec_floor()
+                fx, fy = self._codec_floor(along=True)
                 extra = float(np.hypot(extra, np.hypot(t[0] * fx, t[1] * fy)))
             return (float(np.hypot(sigma[0], t[0] * extra)), float(np.hypot(sigma[1], t[1] * extra)))
         if not isinstance(sigma, _TextureSigma) or self.codec_crf is None:
             return tuple(sigma)
         return tuple(float(np.hypot(s, f)) for s, f in zip(sigma, self._codec_floor(), strict=True))
 
-    def _codec_floor(self) -> tuple[float, float]:
-        """The region's codec floor (px, x and y), measured the first time it is needed."""
-        if self.codec_floor_px is None:
+    def _codec_floor(self, *, along: bool = False) -> tuple[float, float]:
+        """The region's codec floor (px, x and y) for its texture fit, or (``along``) for the
+        paint's quick fit along the member, which is not pre-smoothed (see CODEC_PRESMOOTH_PX):
+        each measured the first time it is needed."""
+        found = self.along_floor_px if along else self.codec_floor_px
+        if found is None:
             floor = codec_floor(self.reference, self.rows, self.cols, self.codec_crf,
-                                presmooth_px=_presmooth(self.codec_crf))
-            self.codec_floor_px = tuple(f if np.isfinite(f) else 0.0 for f in floor)
-        return self.codec_floor_px
+                                presmooth_px=0.0 if along else _presmooth(self.codec_crf))
+            found = tuple(f if np.isfinite(f) else 0.0 for f in floor)
+            if along:
+                self.along_floor_px = found
+            else:
+                self.codec_floor_px = found
+        return found
 
 
 def _clear_of(edges: MemberEdges | None, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -1284,10 +1292,10 @@ class DeepFlow(DenseMethod):
         its codec floor took goes to the counts (the sidecar's timings), and the floor itself
         where the sigma is that of a texture ``reading`` reported (not only compared, see
         :meth:`_outline_sharper`)."""
-        measured = region.codec_floor_px
+        measured = (region.codec_floor_px, region.along_floor_px)
         started = time.perf_counter()
         reported = region.reported_sigma(sigma)
-        if measured is None and region.codec_floor_px is not None:
+        if measured != (region.codec_floor_px, region.along_floor_px):
             self.counts["codec_floor_s"] += time.perf_counter() - started
         if reading and isinstance(sigma, _TextureSigma) and region.codec_floor_px is not None:
             for axis, floor in zip("xy", region.codec_floor_px, strict=True):
@@ -1358,11 +1366,12 @@ class DeepFlow(DenseMethod):
                                      with_sigma=self.want_field_sigma)
             # ... unless the texture's affine fit matches the region's pixels clearly better than
             # that field: the dense flow, not the region, departed from an affine field (see
-            # DEFORM_MATCH_RATIO).
+            # DEFORM_MATCH_RATIO), and the region is read as one that does not deform.
             if affine is not None and (_mismatch(reference, current, region.cols, region.rows, affine[0], affine[1])
                                        < DEFORM_MATCH_RATIO * _mismatch(reference, current, region.cols,
                                                                         region.rows, refined[0], refined[1])):
-                chosen, model, reason, refined = affine, "affine", "texture_matches_better", None
+                chosen, model, reason = _choose(affine, outline, strong)
+                reason, refined = "texture_matches_better" if model == "affine" else reason, None
         self._count(model, reason)
         if refined is not None:
             flow[region.rows, region.cols, 0] = refined[0]

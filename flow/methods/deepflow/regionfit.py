@@ -196,7 +196,7 @@ class RegionFit:
         self.rows, self.cols = rows, cols
         # Filters run on the region's bounding box plus their reach, not on the whole frame.
         height, width = reference.shape
-        pad = 8
+        pad = 8 + int(np.ceil(4 * self.presmooth_px))  # the filters' reach, the smoothing's too
         r0, c0 = max(int(rows.min()) - pad, 0), max(int(cols.min()) - pad, 0)
         r1, c1 = min(int(rows.max()) + pad + 1, height), min(int(cols.max()) + pad + 1, width)
         ref = reference[r0:r1, c0:c1].astype(np.float64)
