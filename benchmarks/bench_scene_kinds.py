@@ -14,7 +14,15 @@ warped coordinates, as in ``tests/integration/test_scene_kinds.py``, whose helpe
   a mask 5 px wide on it;
 * ``ibeam``: an I-beam's web between its dark flanges, the mask on the web;
 * ``moving-bg``: a faint bar before foliage that sways 3 px on its own;
-* ``zoom``: a textured facade approaching the camera (a 1 % scale change about a point).
+* ``zoom``: a textured facade approaching the camera (a 1 % scale change about a point);
+* ``windows``: a facade of sharp-edged dark windows on a 16 px grid (80 grey levels of contrast)
+  moving +-2.5 px along x, the mask inside it (added 2026-12-05: x264's ringing about the edges
+  biased the texture fit, see ``CODEC_PRESMOOTH_PX``);
+* ``stripes``: a bar in hazard tape (sharp diagonal stripes, 12 px period, 40 grey levels, over
+  the bench's faint paint) moving +-2 px across its length, the mask inside it (added
+  2026-12-05: the stripes' levels overlap the wall's, the member's grown outline leaks into the
+  wall and is refused, and the texture fit, which sees the motion along the stripes only in the
+  faint paint a codec freezes, reads it short).
 
 The truth of a frame is the mean true displacement of the mask's pixels along the kind's
 axis. Each method runs ``refflow track CLIP --mask MASK --method M``; the table gives RMSE and
@@ -45,7 +53,7 @@ import test_scene_kinds as kinds  # noqa: E402
 from _lowtex_clip import Clip, encode  # noqa: E402
 
 HEIGHT, WIDTH, UP, FRAMES, FPS = 200, 300, 2, 60, 60.0
-KINDS = ("along", "along-faint", "inclined", "cable", "ibeam", "moving-bg", "zoom")
+KINDS = ("along", "along-faint", "inclined", "cable", "ibeam", "moving-bg", "zoom", "windows", "stripes")
 METHODS = ("deepflow", "dis", "deepflow-dense", "deepflow-opencv", "klt")
 
 
@@ -56,6 +64,14 @@ def _texture(rng: np.random.Generator, blob_px: float) -> np.ndarray:
     return (image - image.mean()) / image.std()
 
 
+def _translation(amp: np.ndarray, axis: str):
+    """The motion ``(k, x, y) -> (u, v)`` of a rigid translation by ``amp[k]`` px along ``axis``."""
+    def motion(k, x, y):
+        moved = np.full_like(x, amp[k])
+        return (moved, np.zeros_like(x)) if axis == "x" else (np.zeros_like(x), moved)
+    return motion
+
+
 def scene(kind: str, seed: int = 1) -> Clip:
     """One clip of ``kind`` (see the module's docstring)."""
     rng = np.random.default_rng(seed)
@@ -64,17 +80,14 @@ def scene(kind: str, seed: int = 1) -> Clip:
     wall = 110 + 25 * _texture(rng, 2.0)
     t = np.arange(FRAMES) / FPS
     mask = np.zeros((HEIGHT, WIDTH), bool)
-    axis, wall_motion = "x", None
+    axis, wall_motion, motion = "x", None, None  # motion: a translation by amp along axis unless the kind says
     amp = 2.0 * np.sin(2 * np.pi * 1.7 * t)
     if kind in ("along", "along-faint"):
         inside = np.abs(xs - 150) < 20
         member = 150 + (4 if kind == "along" else 2) * _texture(rng, 1.5)
         mask[20:180, 136:164] = True
         axis = "y"
-        shift = amp if kind == "along" else 0.75 * amp
-
-        def motion(k, x, y):
-            return np.zeros_like(x), np.full_like(x, shift[k])
+        amp = amp if kind == "along" else 0.75 * amp
     elif kind == "inclined":
         angle = np.deg2rad(30)
         inside = np.abs((xs - 150) * np.cos(angle) - (ys - 100) * np.sin(angle)) < 14
@@ -82,35 +95,23 @@ def scene(kind: str, seed: int = 1) -> Clip:
         mask = ((np.abs((xx - 150) * np.cos(angle) - (yy - 100) * np.sin(angle)) < 9)
                 & (np.abs((xx - 150) * np.sin(angle) + (yy - 100) * np.cos(angle)) < 70))
         amp = 3.0 * np.sin(2 * np.pi * 1.7 * t)
-
-        def motion(k, x, y):
-            return np.full_like(x, amp[k]), np.zeros_like(x)
     elif kind == "cable":
         inside = np.abs(ys - 100 - 0.05 * (xs - 150)) < 3.0
         wall = 200 - 0.1 * ys + 2 * _texture(rng, 4.0)
         member = 60 + 3 * _texture(rng, 1.0)
         mask = (np.abs(yy - 100 - 0.05 * (xx - 150)) < 2.5) & (xx > 30) & (xx < 270)
         axis = "y"
-
-        def motion(k, x, y):
-            return np.zeros_like(x), np.full_like(x, amp[k])
     elif kind == "ibeam":
         inside = np.abs(xs - 150) < 40
         member = np.where(np.abs(xs - 150) > 30, 70.0, 150.0) + 3 * _texture(rng, 1.5)
         mask[20:180, 125:175] = True
         amp = 2.5 * np.sin(2 * np.pi * 1.5 * t)
-
-        def motion(k, x, y):
-            return np.full_like(x, amp[k]), np.zeros_like(x)
     elif kind == "moving-bg":
         inside = np.abs(xs - 150) < 20
         member = 150 + 2 * _texture(rng, 1.5)
         wall = 90 + 35 * _texture(rng, 3.0)
         mask[20:180, 138:162] = True
         sway = 3.0 * np.sin(2 * np.pi * 0.9 * t + 1.0)
-
-        def motion(k, x, y):
-            return np.full_like(x, amp[k]), np.zeros_like(x)
 
         def wall_motion(k, x, y):
             return np.full_like(x, sway[k]), np.full_like(x, 0.5 * sway[k])
@@ -122,8 +123,20 @@ def scene(kind: str, seed: int = 1) -> Clip:
 
         def motion(k, x, y):
             return scale[k] * (x - 100), scale[k] * (y - 100)
+    elif kind == "windows":
+        inside = (np.abs(xs - 150) < 80) & (np.abs(ys - 100) < 70)
+        dark = (np.mod(xs, 16) < 8) & (np.mod(ys, 16) < 8)
+        member = ndimage.gaussian_filter(160.0 - 80.0 * dark, 1.0) + 3 * _texture(rng, 1.5)
+        mask[45:155, 90:210] = True
+        amp = 2.5 * np.sin(2 * np.pi * 1.7 * t)
+    elif kind == "stripes":
+        inside = np.abs(ys - 100) < 15
+        member = ndimage.gaussian_filter(130.0 + 40.0 * (np.mod(xs + ys, 12) < 6), 1.0) + 2 * _texture(rng, 1.5)
+        mask[90:110, 30:270] = True
+        axis = "y"
     else:
         raise ValueError(f"unknown kind {kind!r}: one of {', '.join(KINDS)}")
+    motion = motion or _translation(amp, axis)
     kinds.HEIGHT, kinds.WIDTH, kinds.UP = HEIGHT, WIDTH, UP  # the helpers' frame size
     frames, truth = [], []
     rows, cols = np.nonzero(mask)
