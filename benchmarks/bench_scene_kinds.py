@@ -20,9 +20,10 @@ warped coordinates, as in ``tests/integration/test_scene_kinds.py``, whose helpe
   biased the texture fit, see ``CODEC_PRESMOOTH_PX``);
 * ``stripes``: a bar in hazard tape (sharp diagonal stripes, 12 px period, 40 grey levels, over
   the bench's faint paint) moving +-2 px across its length, the mask inside it (added
-  2026-12-05: the stripes' levels overlap the wall's, the member's grown outline leaks into the
-  wall and is refused, and the texture fit, which sees the motion along the stripes only in the
-  faint paint a codec freezes, reads it short).
+  2026-12-05: the stripes' levels overlap the wall's, the member's grown outline leaked into the
+  wall and was refused, and the texture fit, which sees the motion along the stripes only in the
+  faint paint a codec freezes, read it short; the grow now stops at the straight step of the
+  mean grey, see ``member._beyond_steps``).
 
 The truth of a frame is the mean true displacement of the mask's pixels along the kind's
 axis. Each method runs ``refflow track CLIP --mask MASK --method M``; the table gives RMSE and

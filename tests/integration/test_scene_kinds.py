@@ -80,6 +80,16 @@ def _scene(kind: str, seed: int) -> Clip:
 
         def motion(t, x, y):
             return np.full_like(x, amp[t]), np.full_like(x, 0.3 * amp[t])
+    elif kind == "stripes":  # a girder in hazard tape (diagonal stripes over faint paint) moving across
+        amp = 2.0 * np.sin(2 * np.pi * 1.7 * t_axis)
+        ys_f, xs_f = np.mgrid[0:fine[0], 0:fine[1]] / UP
+        member = ndimage.gaussian_filter(130.0 + 40.0 * (np.mod(xs_f + ys_f, 12) < 6), 1.0) + 2 * _texture(*fine, rng, 1.5)
+        inside[65 * UP:95 * UP, :] = True
+        mask[70:90, 20:188] = True
+        axis = "y"
+
+        def motion(t, x, y):
+            return np.zeros_like(x), np.full_like(x, amp[t])
     elif kind == "whole-view":  # everything moves, no still background
         amp = 2.5 * np.sin(2 * np.pi * 2.1 * t_axis)
         inside[:] = True
@@ -188,11 +198,14 @@ def score(clip: Clip, out: Path) -> tuple[float, float, float, dict]:
 # The default must not lose to a plain baseline on any kind (within 10 %, or a floor of a few
 # hundredths of a pixel that H.264 leaves on every reading), read the scale right and keep
 # its frames valid.
-KINDS = ["panel", "whole-view", "rotation", "tiny", "large", "round", "along", "windows"]
+KINDS = ["panel", "whole-view", "rotation", "tiny", "large", "round", "along", "windows", "stripes"]
 # The shaded round member with a faint texture: its outline (the limb darkening into the wall, no
 # step to fit) once read 0.19 px RMS, 6 % long, with its own uncertainty at 0.3-1.8 px, where DIS
 # read 0.15 (an xfail until 2026-12-03): an outline that imprecise is now refused and the dense
-# flow read (0.08 px).
+# flow read (0.08 px). A girder in hazard tape, whose stripes' grey levels overlap the wall's:
+# its support grew into the wall, the outline was refused and the texture fit, blind to the
+# motion along the stripes but for the faint paint under them, read 0.113 px (DIS 0.059) before
+# 2026-12-05; 0.056 now.
 @pytest.mark.parametrize("kind", KINDS)
 def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) -> None:
     clip = _scene(kind, seed=40 + KINDS.index(kind))
@@ -220,6 +233,9 @@ def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) 
         assert timings["affine_readings"] >= 0.9 * FRAMES and timings["why_texture_fixes_motion"] >= 1
     if kind == "along":  # the outline across the bar, the paint's own fit along it
         assert timings["outline_readings"] >= 0.9 * FRAMES and timings["along_texture"] >= 0.5 * FRAMES
+    if kind == "stripes":  # the outline (its support grown to it, not into the wall: member._beyond_steps)
+        # in part: where the stripes' texture fit says it fixes the motion it is taken (2 of the 4 keys)
+        assert timings["outline_readings"] >= 0.5 * FRAMES
     if kind == "round":  # the imprecise outline refused, the dense flow read
         assert timings["why_outline_imprecise"] >= 1 and timings["dense_readings"] >= 1
     # The bound can fail: the same reading 5 % short breaks the slope's.

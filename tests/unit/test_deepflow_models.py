@@ -146,6 +146,23 @@ def test_a_tracked_frame_does_not_reuse_its_keys_along_member_motion() -> None:
     np.testing.assert_allclose(read[:, 0], truth[:, 0], atol=0.25)
 
 
+def test_an_outline_less_precise_than_a_strong_texture_on_both_axes_is_refused(monkeypatch) -> None:
+    """The same noisy bar with its background taken as seen standing still: its outline said
+    (0.09, 0.60) px of sigma and read 0.14 px across for 0.8 (the outline's fit on a strongly
+    textured member under 6 grey levels of noise); the texture's fit said (0.015, 0.014) and read
+    0.93. The outline is refused (``why_outline_texture_sharper``), as it is where the background
+    was never seen still (``why_outline_background_unseen``)."""
+    monkeypatch.setattr(deepflow_module, "_background_static", lambda *args, **kwargs: True)
+    render, poi = _sliding_bar(12.0, 2.5, noise_grey=6.0)
+    reference = render(0.0, 0.0)
+    method = deepflow_module.DeepFlow()
+    method.bind(reference, poi)
+    method.restart()
+    flow = method.calc(reference, render(0.8, 0.6))
+    assert abs(float(np.mean(flow[..., 0][poi])) - 0.8) < 0.25
+    assert method.counts["why_outline_texture_sharper"] == 1 and method.counts["affine_readings"] == 1
+
+
 def test_a_faint_paint_reads_the_members_motion_along_itself() -> None:
     """A faintly painted bar (4 grey levels) slides 1.5 px along itself while it moves 0.5 px
     across. The outline has no edge along it (the bar runs on beyond the POIs) and the dense

@@ -126,6 +126,16 @@ OUTLINE_ROUNDS = 2
 CONVERGED_PX = 1e-7
 # Farthest neighbour (lines apart) whose error correlation the uncertainty accounts for.
 MAX_LAG = 32
+# A support grown more than this (px) beyond a straight step of the mean grey beside the mask
+# has crossed the member's outline (see _beyond_steps).
+STEP_LEAK_PX = 2
+# ... looked for across a mask at least this many times longer than wide only (along a member
+# the support rightly grows beyond the mask's ends, and a sagging cable leaves the mask's band).
+STEP_ELONGATION = 2.0
+# ... a step the mean grey stays off the member's level for this many px (a band inside the
+# member comes back), found in the same bin (+-1) in each of STEP_PARTS parts of the mask's length.
+STEP_STAY_PX = 6
+STEP_PARTS = 4
 
 
 @dataclass(frozen=True)
@@ -206,9 +216,93 @@ def _grow(reference: np.ndarray, mask: np.ndarray, params: MemberParams) -> np.n
     keep[np.unique(labels[mask])] = True
     keep[0] = False
     support = keep[labels]
+    beyond = _beyond_steps(reference, mask, support, params)
+    if beyond.any():
+        n, labels = cv2.connectedComponents((allowed & ~beyond).astype(np.uint8), connectivity=4)
+        keep = np.zeros(n, bool)
+        keep[np.unique(labels[mask])] = True
+        keep[0] = False
+        support = keep[labels]
     # Close pinholes of noise inside the member (a pixel of the paint that failed the test).
     closed = cv2.morphologyEx(support.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
     return (support | closed) & (reach | mask)
+
+
+def _beyond_steps(reference: np.ndarray, mask: np.ndarray, support: np.ndarray,
+                  params: MemberParams) -> np.ndarray:
+    """Pixels the grown ``support`` took beyond a straight step of the mean grey: where a
+    member's pixels look like its background's one by one (hazard stripes over a textured wall:
+    their grey levels overlap), the grow crosses its outline. Averaged along the mask's side,
+    the grey still steps there. Across an elongated mask (STEP_ELONGATION), on each side, the
+    mean grey of the pixels beside the mask is taken 1 px at a time outwards; the first one that
+    differs from the mask's own edge by more than the likeness tolerance (``like_k`` times the
+    inner profile's noise, at least ``like_floor``) and stays off for STEP_STAY_PX is where the
+    member ends, where each of STEP_PARTS parts of the mask's length finds it in the same bin
+    (+-1: a mask drawn a few degrees off the member's edges finds no such step); what the
+    support holds more than STEP_LEAK_PX beyond it (at least half the side's length) is returned
+    from that bin on (to be left out). A support that stops at its outline is not touched."""
+    beyond = np.zeros(mask.shape, bool)
+    ys, xs = np.nonzero(mask)
+    if len(xs) < 3:
+        return beyond
+    centre = np.array([xs.mean(), ys.mean()])
+    evals, axes = np.linalg.eigh(np.cov(np.stack([xs, ys]).astype(np.float64)))
+    if evals[1] < STEP_ELONGATION ** 2 * max(evals[0], 1e-9):
+        return beyond
+    normal, along = axes[:, 0], axes[:, 1]  # across the mask, along it
+    # Only the mask's box grown by grow_px is looked at (the support cannot reach beyond it).
+    pad = params.grow_px + 1
+    y0, y1 = max(int(ys.min()) - pad, 0), min(int(ys.max()) + pad + 1, mask.shape[0])
+    x0, x1 = max(int(xs.min()) - pad, 0), min(int(xs.max()) + pad + 1, mask.shape[1])
+    box = (slice(y0, y1), slice(x0, x1))
+    mask, support, reference = mask[box], support[box], reference[box]
+    grid_y, grid_x = np.mgrid[y0:y1, x0:x1]
+    s_all = (grid_x - centre[0]) * normal[0] + (grid_y - centre[1]) * normal[1]
+    t_all = (grid_x - centre[0]) * along[0] + (grid_y - centre[1]) * along[1]
+    s_mask, t_mask = s_all[mask], t_all[mask]
+    beside = (t_all >= t_mask.min()) & (t_all <= t_mask.max())
+    lo, hi = float(s_mask.min()), float(s_mask.max())
+    inner_bins = np.rint(s_all[mask] - lo).astype(np.int64)
+    inner = np.bincount(inner_bins, weights=reference[mask]) / np.maximum(np.bincount(inner_bins), 1)
+    if len(inner) < 4:
+        return beyond
+    noise = MAD_TO_SIGMA * float(np.median(np.abs(inner - np.median(inner))))
+    tolerance = max(params.like_k * noise, params.like_floor)
+    length = float(t_mask.max() - t_mask.min()) + 1.0
+    # The mask's length in STEP_PARTS parts: a straight outline parallel to the mask steps in
+    # the same bin in each of them (a mask drawn a few degrees off the member's edges does not).
+    part = np.minimum(((t_all - t_mask.min()) / length * STEP_PARTS).astype(np.int64), STEP_PARTS - 1)
+    for side, edge, level in ((1.0, hi, float(np.median(inner[-3:]))), (-1.0, lo, float(np.median(inner[:3])))):
+        out = np.rint(side * (s_all - edge)).astype(np.int64)  # bins outwards from the mask's side
+        near = beside & (out >= 1) & (out <= params.grow_px)
+        steps = [_first_step(out[near & (part == k)], reference[near & (part == k)], level, tolerance,
+                             params.grow_px, length / STEP_PARTS) for k in range(STEP_PARTS)]
+        step = _first_step(out[near], reference[near], level, tolerance, params.grow_px, length)
+        if step is None or None in steps or max(steps + [step]) - min(steps + [step]) > 1:
+            continue
+        leak = support & (out > step + STEP_LEAK_PX)
+        if np.count_nonzero(leak & beside) >= 0.5 * length:
+            beyond[box] |= support & (out >= step)
+    return beyond
+
+
+def _first_step(out: np.ndarray, grey: np.ndarray, level: float, tolerance: float, grow_px: int,
+                length: float) -> int | None:
+    """The first bin (``out``: 1 .. grow_px px outwards) whose mean ``grey`` leaves ``level`` by
+    more than ``tolerance`` and stays off it for STEP_STAY_PX bins (a band inside the member, a
+    weld or a stiffener's shadow, comes back to it); None where none does, or where a bin holds
+    fewer than half of ``length`` pixels first (the frame's border)."""
+    counts = np.bincount(out, minlength=grow_px + 1)
+    means = np.bincount(out, weights=grey, minlength=grow_px + 1) / np.maximum(counts, 1)
+    for b in range(1, grow_px + 1):
+        if counts[b] < 0.5 * length:
+            return None
+        if abs(means[b] - level) > tolerance:
+            stay = range(b, min(b + STEP_STAY_PX, grow_px + 1))
+            if all(counts[k] >= 0.5 * length and abs(means[k] - level) > tolerance for k in stay):
+                return b
+            return None
+    return None
 
 
 @dataclass(frozen=True)

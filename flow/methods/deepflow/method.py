@@ -359,9 +359,10 @@ DEFORM_MATCH_RATIO = 0.9
 OUTLINE_MAX_SIGMA_PX = 0.5
 
 # Why a full measurement took its model: the sidecar's timings count each (``why_<reason>``,
-# a region in a frame), beside the readings of each model and the outlines refused because
-# the background beyond them moved with the member (``why_outline_background_moves``) or
-# because they were too imprecise (``why_outline_imprecise``).
+# a region in a frame), beside the readings of each model and the outlines refused (REFUSALS):
+# because the background beyond them moved with the member (``why_outline_background_moves``),
+# because they were too imprecise (``why_outline_imprecise``), or because a strong texture was
+# more precise (``why_outline_background_unseen``, ``why_outline_texture_sharper``).
 REASONS = {
     "texture_fixes_motion": "the texture is strong and fixes the motion on both axes",
     "outline_no_texture": "the outline; no strong texture fit",
@@ -376,9 +377,11 @@ REASONS = {
     "outline_background_moves": "an outline refused: the background beyond it moves part of the way "
                                 "with the member (neither still nor with it)",
     "outline_imprecise": "an outline refused: its own uncertainty exceeds OUTLINE_MAX_SIGMA_PX on both axes",
+    "outline_texture_sharper": "an outline refused: a strong texture's fit is at least as precise as it "
+                               "on both axes (its background seen still)",
 }
 # The reasons that count a refusal, not the choice a full measurement made.
-REFUSALS = ("outline_background_moves", "outline_imprecise", "outline_background_unseen")
+REFUSALS = ("outline_background_moves", "outline_imprecise", "outline_background_unseen", "outline_texture_sharper")
 
 
 def _choose(affine: tuple | None, outline: tuple | None, strong: bool,
@@ -1357,6 +1360,13 @@ class DeepFlow(DenseMethod):
             # read 0.05 px off where the outline, 0.002-0.03 px, read the rest).
             self._count(None, "outline_background_unseen")
             outline = None
+        elif outline is not None and strong and self._texture_sharper(region, outline, affine):
+            # Nor where the texture's fit is at least as precise on both axes (its sigma with the
+            # codec's error): an outline found right, with a background seen still, reads a
+            # strongly textured member under heavy noise 0.35 px off (its sigma 0.11 px) where
+            # the texture read 0.13 (its sigma 0.015).
+            self._count(None, "outline_texture_sharper")
+            outline = None
         chosen, model, reason = _choose(affine, outline, strong, deforms)
         refined = None
         if reason == "dense_deforms":
@@ -1398,6 +1408,15 @@ class DeepFlow(DenseMethod):
             return False
         axis = int(np.argmin(outline[2]))
         return outline[2][axis] < self._reported_sigma(region, affine[2], reading=False)[axis]
+
+    def _texture_sharper(self, region: _Region, outline: tuple, affine: tuple | None) -> bool:
+        """Whether a texture reading (``affine``; None: none) is at least as precise as an
+        outline reading on both axes, the texture's sigma with the codec's error (an outline
+        sigma that is not finite never is)."""
+        if affine is None or not all(np.isfinite(outline[2])):
+            return False
+        texture = self._reported_sigma(region, affine[2], reading=False)
+        return all(t <= o for t, o in zip(texture, outline[2], strict=True))
 
     def _track(self, reference: np.ndarray, current: np.ndarray,
                region: _Region) -> tuple[np.ndarray, np.ndarray, tuple[float, float]] | None:
