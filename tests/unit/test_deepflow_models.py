@@ -393,3 +393,24 @@ def test_a_background_moving_with_the_member_keeps_its_outline() -> None:
     assert check(3.0, 0.45, 0.45) is False
     assert check(1.0, 0.7, 0.7) is False
     assert check(0.3, 0.0, 0.0) is None  # too small a motion to tell
+
+
+
+def test_the_photometric_match_takes_a_frames_exposure_out() -> None:
+    """``_mismatch`` compares a frame with the reference after the frame's gain at the points
+    (beyond MISMATCH_GAIN_BAND) is taken out: a faint paint 25 % brighter still tells its true
+    motion from one a pixel off by the same margin as at the reference's exposure (before
+    2026-12-06 the 37 grey levels of the step swamped the paint's few)."""
+    render, poi = _sliding_bar(4.0, 1.5, noise_grey=0.5)
+    reference = render(0.0, 0.0).astype(np.float32)
+    current = render(0.0, 1.0).astype(np.float32)
+    rows, cols = np.nonzero(poi)
+    zero, one = np.zeros(len(rows)), np.ones(len(rows))
+
+    def match(frame, along):
+        return deepflow_module._mismatch(reference, frame, cols, rows,
+                                         zero, along * one)
+
+    brighter = current * np.float32(1.25)
+    assert match(brighter, 1.0) < 0.5 * match(brighter, 0.0)
+    assert abs(match(brighter, 1.0) - match(current, 1.0)) < 0.05

@@ -258,7 +258,16 @@ def _mismatch(reference: np.ndarray, current: np.ndarray, cols: np.ndarray, rows
     x = np.clip(cols + u, 0, width - 1)
     y = np.clip(rows + v, 0, height - 1)
     warped = sample(current, x, y)
-    return float(np.nanmean(np.abs(warped - reference[rows, cols].astype(np.float32))))
+    before = reference[rows, cols].astype(np.float32)
+    gain = float(np.nanmedian(warped)) / max(float(np.median(before)), 1e-6)
+    if abs(gain - 1.0) > MISMATCH_GAIN_BAND and np.isfinite(gain) and gain > 0:
+        warped = warped / np.float32(gain)
+    return float(np.nanmean(np.abs(warped - before)))
+
+
+# A frame whose brightness at the points differs from the reference's by more than this
+# fraction (a phone's exposure stepping) is compared after that gain is taken out (see _mismatch).
+MISMATCH_GAIN_BAND = 0.005
 
 
 # Which reading a region takes in a full measurement (see :func:`_choose`). The texture fit
@@ -372,6 +381,9 @@ REASONS = {
     "dense_deforms": "the dense flow; the strong texture shows the region deforming beyond an affine field",
     "texture_matches_better": "the strong texture's affine fit; the dense flow showed the region deforming, "
                               "but its refined field matched the region's pixels clearly worse",
+    "outline_matches_better": "the outline; the dense flow showed the region deforming and the texture's "
+                              "fit failed or matched no better, but the refined field matched the region's "
+                              "pixels clearly worse than the outline's motion",
     "outline_background_unseen": "an outline refused: a strong texture more precise than it, and the "
                                  "background never seen still or moving with the member while it moved",
     "outline_background_moves": "an outline refused: the background beyond it moves part of the way "
@@ -456,6 +468,8 @@ class _Region:
     codec_floor_px: tuple[float, float] | None = None  # measured on the first texture reading
     along_floor_px: tuple[float, float] | None = None  # the paint's, on its first along reading (see _codec_floor)
     along_fit: RegionFit | None = None  # the quick translation fit of the along-member motion
+    last_mean: tuple[float, float] | None = None  # the POIs' mean motion in the part's last frame
+    last_step_px: float = 0.0  # how far it moved from the frame before (see DeepFlow._track)
     texture_strength: tuple[float, float] = (0.0, 0.0)  # the texture's strength away from the outline
     along_tried: bool = False  # the chain's key's texture along fit converged: its frames try it too
     along_texture: bool = False  # and the key took its along-member motion: its frames take theirs
@@ -1136,6 +1150,7 @@ class DeepFlow(DenseMethod):
         self._motion_px = None
         for region in self._regions:
             region.restart()
+            region.last_mean, region.last_step_px = None, 0.0
 
     def _dense_reaching(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
         """The dense flow in the window of a reach that holds the POIs' motion (see
@@ -1232,6 +1247,15 @@ class DeepFlow(DenseMethod):
                 flow[region.rows, region.cols, 1] = v
         if self._chaining:
             self._motion_px = _poi_motion(flow, self._poi_rows, self._poi_cols)
+            for region in regions:
+                block = flow[region.rows, region.cols]
+                read = np.isfinite(block).all(axis=1)
+                if not read.any():
+                    continue
+                mean = (float(block[read, 0].mean()), float(block[read, 1].mean()))
+                if region.last_mean is not None:
+                    region.last_step_px = float(np.hypot(mean[0] - region.last_mean[0], mean[1] - region.last_mean[1]))
+                region.last_mean = mean
         return flow
 
     def _glimpse(self, reference: np.ndarray, current: np.ndarray) -> np.ndarray:
@@ -1377,11 +1401,15 @@ class DeepFlow(DenseMethod):
             # ... unless the texture's affine fit matches the region's pixels clearly better than
             # that field: the dense flow, not the region, departed from an affine field (see
             # DEFORM_MATCH_RATIO), and the region is read as one that does not deform.
+            field_mismatch = _mismatch(reference, current, region.cols, region.rows, refined[0], refined[1])
             if affine is not None and (_mismatch(reference, current, region.cols, region.rows, affine[0], affine[1])
-                                       < DEFORM_MATCH_RATIO * _mismatch(reference, current, region.cols,
-                                                                        region.rows, refined[0], refined[1])):
+                                       < DEFORM_MATCH_RATIO * field_mismatch):
                 chosen, model, reason = _choose(affine, outline, strong)
                 reason, refined = "texture_matches_better" if model == "affine" else reason, None
+            elif outline is not None and region.key_mismatch < DEFORM_MATCH_RATIO * field_mismatch:
+                # The same for the outline where the texture's fit failed (started from that torn
+                # field: a facade of windows in low light, one key 2.4 px off).
+                chosen, model, reason, refined = outline, "outline", "outline_matches_better", None
         self._count(model, reason)
         if refined is not None:
             flow[region.rows, region.cols, 0] = refined[0]
@@ -1439,6 +1467,11 @@ class DeepFlow(DenseMethod):
             self._count("affine")
             return region.texture_reading(found)
         member = region.member
+        if region.last_step_px > MAX_WARM_STEP_PX:
+            # The member moved further than a tracked outline may step since the frame before: the
+            # fit, started from that frame's outline, finds an edge within its search instead (a
+            # bar swung +-35 px: 8.4 px between two frames, read 5.7 px short).
+            return None
         prior = np.column_stack(member.field.uv(region.theta))
         model, systematic, spread = region.key_outline
         fit = member.fit(current, prior, gain=region.gain(current), first=_first_models(model),
