@@ -210,22 +210,22 @@ def _grow(reference: np.ndarray, mask: np.ndarray, params: MemberParams) -> np.n
     reach = cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(
         cv2.MORPH_ELLIPSE, (2 * params.grow_px + 1, 2 * params.grow_px + 1))) > 0
     allowed = (like & reach) | mask
-    # Connected to the mask: flood from it through allowed pixels (4-neighbours).
+    support = _connected_to(mask, allowed)
+    beyond = _beyond_steps(reference, mask, support, params)
+    if beyond.any():
+        support = _connected_to(mask, allowed & ~beyond)
+    # Close pinholes of noise inside the member (a pixel of the paint that failed the test).
+    closed = cv2.morphologyEx(support.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
+    return (support | closed) & (reach | mask)
+
+
+def _connected_to(mask: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """The ``allowed`` pixels connected to the mask: flooded from it (4-neighbours)."""
     n, labels = cv2.connectedComponents(allowed.astype(np.uint8), connectivity=4)
     keep = np.zeros(n, bool)
     keep[np.unique(labels[mask])] = True
     keep[0] = False
-    support = keep[labels]
-    beyond = _beyond_steps(reference, mask, support, params)
-    if beyond.any():
-        n, labels = cv2.connectedComponents((allowed & ~beyond).astype(np.uint8), connectivity=4)
-        keep = np.zeros(n, bool)
-        keep[np.unique(labels[mask])] = True
-        keep[0] = False
-        support = keep[labels]
-    # Close pinholes of noise inside the member (a pixel of the paint that failed the test).
-    closed = cv2.morphologyEx(support.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
-    return (support | closed) & (reach | mask)
+    return keep[labels]
 
 
 def _beyond_steps(reference: np.ndarray, mask: np.ndarray, support: np.ndarray,
