@@ -323,3 +323,42 @@ def test_a_region_up_to_the_frame_edge_is_read_when_the_motion_takes_part_of_it_
     rows, cols = _region(reference.shape, (0, 120, 140, 160))  # a 20 px strip at the right edge
     strip = RegionFit(reference, rows, cols, bias_correction=False)
     assert not strip.fit_translation(shifted(reference, 12.0, 0.0), np.array([12.0, 0, 0, 0, 0, 0])).converged
+
+
+def test_the_pixels_a_codec_copied_from_the_reference_are_found_and_left_out_of_the_fit() -> None:
+    """A codec that repeats the reference's blocks where a motion is below what it codes (a
+    tiny motion under heavy compression) leaves pixels that show no motion; the fit that counts
+    them reads short, the one that leaves them out reads the motion."""
+    from flow.methods.deepflow.codecfloor import COPY_BLOCK_PX, codec_copies
+
+    rng = np.random.default_rng(5)
+    reference = to_u8(textured(160, 200, seed=11) + rng.normal(0, 1.0, (160, 200)))
+    current = to_u8(shifted(textured(160, 200, seed=11), 0.0, 0.3) + rng.normal(0, 1.0, (160, 200)))
+    # The codec copied 16x16 blocks of the reference at every other block of the region (x264's
+    # macroblock grid, offset from the region's corner: the squares are found wherever they lie).
+    copied_truth = np.zeros(reference.shape, bool)
+    for r in range(32, 128, 16):
+        for c in range(48, 160, 32):
+            copied_truth[r:r + 16, c + 16 * ((r // 16) % 2):c + 16 * ((r // 16) % 2) + 16] = True
+    current[copied_truth] = reference[copied_truth]
+    rows, cols = _region(reference.shape, (40, 120, 50, 150))
+    found = codec_copies(reference, current, rows, cols)
+    assert np.array_equal(found, copied_truth[rows, cols])
+    # Sensor noise never leaves a square of COPY_BLOCK_PX equal by chance, and a copy smaller
+    # than one is not taken for one.
+    noisy = to_u8(textured(160, 200, seed=11) + rng.normal(0, 1.0, (160, 200)))
+    assert not codec_copies(reference, noisy, rows, cols).any()
+    small = noisy.copy()
+    small[60:60 + COPY_BLOCK_PX - 1, 80:80 + COPY_BLOCK_PX - 1] = reference[60:60 + COPY_BLOCK_PX - 1,
+                                                                         80:80 + COPY_BLOCK_PX - 1]
+    assert not codec_copies(reference, small, rows, cols).any()
+
+    fit = RegionFit(reference.astype(np.float64), rows, cols, bias_correction=False)
+    counted = fit.fit(current.astype(np.float64), np.zeros(6))
+    left_out = fit.fit(current.astype(np.float64), np.zeros(6), keep=~codec_copies(reference, current,
+                                                                                   fit.rows, fit.cols))
+    assert counted.converged and left_out.converged
+    v_counted = fit.field(counted.params, rows, cols)[1].mean()
+    v_left_out = fit.field(left_out.params, rows, cols)[1].mean()
+    assert abs(v_left_out - 0.3) < 0.02
+    assert v_counted < 0.3 - 0.05  # the bound can fail: the copies pull the reading towards none

@@ -956,7 +956,8 @@ class MemberEdges:
 
     def fit(self, current: np.ndarray, prior_uv: np.ndarray, *, gain: float | None = None,
             camera: np.ndarray | None = None, first: tuple[int, ...] | None = None,
-            enough_spread: float = float("inf"), systematic: np.ndarray | None = None) -> MemberFit:
+            enough_spread: float = float("inf"), systematic: np.ndarray | None = None,
+            skip: np.ndarray | None = None) -> MemberFit:
         """Fit the member's motion in ``current`` (same shape as the reference).
 
         ``prior_uv``: ``(n_profiles, 2)`` dense-flow displacement at each profile's outline,
@@ -971,6 +972,8 @@ class MemberEdges:
         ``first`` only those models measure it, and the rest only where the best of them has a
         spread above ``enough_spread`` px; where the rest are not needed, the models'
         disagreement is ``systematic`` (px, x and y: a chain key's, see :meth:`mean_sigma`).
+        ``skip``: ``(n_profiles,)`` bool, profiles left out of the fits (a codec copied their
+        pixels from the reference: see :func:`~flow.methods.deepflow.codecfloor.codec_copies`).
         """
         check_shape("current", current, self.shape)
         if first is not None and not set(first) <= set(range(len(BLURS) + 1)):
@@ -998,11 +1001,11 @@ class MemberEdges:
         # outlines agree best on one motion is kept; the profiles matched whole are the last
         # model (for outlines over a uniform background).
         every = range(len(BLURS) + 1)
-        fitted = {index: self._model_fit(index, cur, start, gain, camera, prior)
+        fitted = {index: self._model_fit(index, cur, start, gain, camera, prior, skip)
                   for index in (every if first is None else sorted(set(first)))}
         found = [r for r in fitted.values() if r is not None]
         if first is not None and (not found or min(r.spread for r in found) > enough_spread):
-            fitted.update({index: self._model_fit(index, cur, start, gain, camera, prior)
+            fitted.update({index: self._model_fit(index, cur, start, gain, camera, prior, skip)
                            for index in every if index not in fitted})
             systematic = None
         results = [(index, fitted[index]) for index in sorted(fitted) if fitted[index] is not None]
@@ -1025,7 +1028,7 @@ class MemberEdges:
                          len(fitted) == len(every))
 
     def _model_fit(self, index: int, cur: np.ndarray, start: np.ndarray, gain: float | None,
-                   camera: np.ndarray | None, prior: np.ndarray) -> _Solution | None:
+                   camera: np.ndarray | None, prior: np.ndarray, skip: np.ndarray | None = None) -> _Solution | None:
         """The motion as outline model ``index`` measures it (see :meth:`fit`): a blur model's
         fine fit in OUTLINE_ROUNDS rounds, or the profiles matched whole in two."""
         if index == len(BLURS):
@@ -1034,6 +1037,8 @@ class MemberEdges:
             for _ in range(2):
                 found = self._shift(cur, guess, gain)
                 usable = np.isfinite(found.edge) & np.isfinite(self.ref.edge)
+                if skip is not None:
+                    usable &= ~skip
                 if usable.sum() < self.params.min_profiles:
                     return None
                 d = (found.edge - self.ref.edge)[usable]
@@ -1055,6 +1060,8 @@ class MemberEdges:
                     getattr(found, name)[use] = getattr(known, name)[use]
             usable = (np.isfinite(found.edge) & np.isfinite(ref.edge)
                       & (np.abs(found.contrast) >= self.params.min_contrast))
+            if skip is not None:
+                usable &= ~skip
             if usable.sum() < self.params.min_profiles:
                 return None
             d = (found.edge - ref.edge)[usable]

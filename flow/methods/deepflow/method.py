@@ -24,7 +24,7 @@ from scipy import ndimage
 from flow.io.errors import InputError
 from flow.measure.photometric import sample
 from flow.methods.base import CROP, CROP_MARGIN_PX, DenseMethod, check_pair, register
-from flow.methods.deepflow.codecfloor import codec_floor
+from flow.methods.deepflow.codecfloor import codec_copies, codec_floor
 from flow.methods.deepflow.deepmatching import (
     ATOMIC,
     MatchParams,
@@ -247,6 +247,18 @@ ALONG_CLEAR = 0.9
 # bench's painted bars 13-26 % of their time, 8 cost 10 %).
 ALONG_HOP_PX = 1.0
 HOP_ITERATIONS = 8
+# A region's texture fit leaves out the pixels a codec copied from the reference (see
+# flow.methods.deepflow.codecfloor.codec_copies: a member moving +-0.3 px at CRF 28 read slope
+# 0.57 with them, DIS 0.68), where at least this share of its pixels stays.
+COPY_MIN_KEPT = 0.1
+# An outline more than this share of whose profiles a codec copied from the reference is not read
+# where a strong texture's fit (the copies left out) reads the region: the codec froze the
+# member's edges, and the rest were copied from frames near the reference (a textured member
+# moving +-0.3 px at CRF 28: 64 % of its profiles the reference's, the outline read no motion in
+# 13 frames running, 0.15 px RMS where DIS read 0.06). Not where the texture is faint: a bar
+# sliding along itself shows its edges unchanged, and the codec copies them (a faint paint
+# sliding +-2 px: up to 100 % of its profiles; its outline, right across the bar, is read).
+COPY_OUTLINE_MAX = 0.5
 
 
 def _mismatch(reference: np.ndarray, current: np.ndarray, cols: np.ndarray, rows: np.ndarray,
@@ -406,9 +418,12 @@ REASONS = {
     "outline_imprecise": "an outline refused: its own uncertainty exceeds OUTLINE_MAX_SIGMA_PX on both axes",
     "outline_texture_sharper": "an outline refused: a strong texture's fit is at least as precise as it "
                                "on both axes (its background seen still)",
+    "outline_codec_copied": "an outline refused: the codec copied most of its pixels from the reference "
+                            "unchanged (a motion below what it codes: the edges show none)",
 }
 # The reasons that count a refusal, not the choice a full measurement made.
-REFUSALS = ("outline_background_moves", "outline_imprecise", "outline_background_unseen", "outline_texture_sharper")
+REFUSALS = ("outline_background_moves", "outline_imprecise", "outline_background_unseen", "outline_texture_sharper",
+            "outline_codec_copied")
 
 
 def _choose(affine: tuple | None, outline: tuple | None, strong: bool,
@@ -638,6 +653,18 @@ class _Region:
         """The frame's brightness at the POIs relative to the reference's (lighting changes)."""
         gain = float(np.median(current[self.rows, self.cols])) / self.ref_level
         return gain if np.isfinite(gain) and gain > 0 else None
+
+    def texture_fit(self, current: np.ndarray, start: np.ndarray) -> tuple[RegionMotion, bool]:
+        """The region's texture fit into ``current`` from ``start``, and whether pixels were left
+        out: on a lossy stream those the codec copied from the reference (see
+        :func:`~flow.methods.deepflow.codecfloor.codec_copies`), where at least COPY_MIN_KEPT
+        of the pixels stay (a region copied nearly whole shows no motion either way)."""
+        keep = None
+        if self.reference is not None:
+            copied = codec_copies(self.reference, current, self.texture.rows, self.texture.cols)
+            if copied.any() and np.count_nonzero(~copied) >= COPY_MIN_KEPT * copied.size:
+                keep = ~copied
+        return self.texture.fit(current, start, keep=keep), keep is not None
 
     def texture_reading(self, found: RegionMotion) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
         u, v = self.texture.field(found.params, self.rows, self.cols)
@@ -1083,7 +1110,7 @@ class DeepFlow(DenseMethod):
         # (``reach_widened``: dense solves done again with a longer reach, see WIDEN_SHARE.)
         self.counts = dict.fromkeys(("full_frames", "warm_frames", "hidden_frames", "outline_readings", "affine_readings",
                                      "dense_readings", "background_texture_readings", "along_texture", "reach_widened",
-                                     "outline_every_model",
+                                     "outline_every_model", "codec_copies_left_out",
                                      "codec_floor_s",
                                      "codec_floor_x_px", "codec_floor_y_px",
                                      *(f"why_{reason}" for reason in REASONS)), 0)
@@ -1344,6 +1371,38 @@ class DeepFlow(DenseMethod):
                 self.counts[f"codec_floor_{axis}_px"] = max(self.counts[f"codec_floor_{axis}_px"], floor)
         return reported
 
+    def _texture_fit(self, region: _Region, current: np.ndarray, start: np.ndarray) -> RegionMotion:
+        """:meth:`_Region.texture_fit`, counting the fits that left a codec's copies out."""
+        found, left_out = region.texture_fit(current, start)
+        if left_out:
+            self.counts["codec_copies_left_out"] += 1
+        return found
+
+    def _copied_profiles(self, region: _Region, reference: np.ndarray,
+                         current: np.ndarray) -> tuple[np.ndarray | None, bool]:
+        """Which of the member's outline profiles a codec copied from the reference (see
+        :func:`~flow.methods.deepflow.codecfloor.codec_copies`: their outline pixel) on a lossy
+        stream, to be left out of the fit where enough for one stay (None: none left out), and
+        whether more than COPY_OUTLINE_MAX of them were copied (the frame is not the reference
+        itself): the codec froze the member's edges, or the member moved along them only, which
+        shows the same; the outline is then not read where a strong texture's fit (the copies
+        left out) reads the motion instead."""
+        member = region.member
+        if self._bias_on or member is None or member.n_profiles == 0:
+            return None, False
+        height, width = reference.shape
+        rows = np.clip(np.rint(member.py).astype(np.intp), 0, height - 1)
+        cols = np.clip(np.rint(member.px).astype(np.intp), 0, width - 1)
+        copied = codec_copies(reference, current, rows, cols)
+        if not copied.any() or copied.all():
+            return None, False
+        if np.mean(copied) > COPY_OUTLINE_MAX:
+            return None, True
+        if np.count_nonzero(~copied) < member.params.min_profiles:
+            return None, False
+        self.counts["codec_copies_left_out"] += 1
+        return copied, False
+
     def _count(self, model: str | None, reason: str | None = None) -> None:
         if model is not None:
             self.counts[f"{model}_readings"] += 1
@@ -1363,7 +1422,7 @@ class DeepFlow(DenseMethod):
         strong = region.texture is not None and min(region.texture_strength) >= MIN_TEXTURE_GRADIENT
         if strong:
             start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
-            texture = None if start is None else region.texture.fit(current, start)
+            texture = None if start is None else self._texture_fit(region, current, start)
             if texture is not None and texture.converged and all(np.isfinite(texture.sigma_px)):
                 affine = region.texture_reading(texture)
             else:
@@ -1373,11 +1432,14 @@ class DeepFlow(DenseMethod):
         outline, fit, along = None, None, None
         static = None if region.member is None else _background_static(flow, region, reference, current)
         region.static_known = static is not None
+        skip, frozen = self._copied_profiles(region, reference, current)
         if static is False:
             self._count(None, "outline_background_moves")
+        elif frozen and affine is not None:
+            self._count(None, "outline_codec_copied")
         elif region.member is not None:
             prior = flow[region.prior_rows, region.prior_cols].astype(np.float64)
-            fit = region.member.fit(current, prior, gain=region.gain(current), camera=camera)
+            fit = region.member.fit(current, prior, gain=region.gain(current), camera=camera, skip=skip)
             if fit.ok:
                 u, v, edges, along, state = region.motion(
                     reference, current, fit, region.along(dense_u, dense_v), texture=True)
@@ -1469,7 +1531,7 @@ class DeepFlow(DenseMethod):
         if region.model == "affine":
             previous = region.affine
             start = previous if region.affine_before is None else 2.0 * previous - region.affine_before
-            found = region.texture.fit(current, start)
+            found = self._texture_fit(region, current, start)
             # The residual is that of the pixels the robust weights keep: a fit caught a pixel
             # or two off the motion keeps few and can show a residual as small as the key's (a
             # photo texture moving 1.5 px between frames: 0.095 grey levels on 41 % of the
@@ -1487,10 +1549,13 @@ class DeepFlow(DenseMethod):
             # fit, started from that frame's outline, finds an edge within its search instead (a
             # bar swung +-35 px: 8.4 px between two frames, read 5.7 px short).
             return None
+        skip, frozen = self._copied_profiles(region, reference, current)
+        if frozen and region.texture is not None and min(region.texture_strength) >= MIN_TEXTURE_GRADIENT:
+            return None  # measured in full, where the outline is refused for the texture's fit
         prior = np.column_stack(member.field.uv(region.theta))
         model, systematic, spread = region.key_outline
         fit = member.fit(current, prior, gain=region.gain(current), first=_first_models(model),
-                         enough_spread=TRACKED_SPREAD_RATIO * spread + 1e-3, systematic=systematic)
+                         enough_spread=TRACKED_SPREAD_RATIO * spread + 1e-3, systematic=systematic, skip=skip)
         if not fit.ok:
             return None
         u, v, edges, _, state = region.motion(reference, current, fit, region.key_along,

@@ -279,16 +279,18 @@ class RegionFit:
         u, v = self.field(params, self.rows, self.cols)
         return self.cols + u, self.rows + v
 
-    def fit(self, current: np.ndarray, start: np.ndarray) -> RegionMotion:
+    def fit(self, current: np.ndarray, start: np.ndarray, *, keep: np.ndarray | None = None) -> RegionMotion:
         """The region's affine motion into ``current`` (same shape as the reference), from the
-        starting warp ``start`` (6 params, see :class:`RegionMotion`).
+        starting warp ``start`` (6 params, see :class:`RegionMotion`); ``keep`` (bool over
+        :attr:`rows`, :attr:`cols`; None: all) the pixels the fit may use (those a codec copied
+        from the reference carry no motion: see :func:`~flow.methods.deepflow.codecfloor.codec_copies`).
 
         Where the affine fit does not converge (a texture that constrains the stretch no more
         than a change of contrast does: a smoothly shaded round member), the translation alone
         is fitted, the deformation kept at the start's."""
-        found = self._solve(current, start, _AFFINE)
+        found = self._solve(current, start, _AFFINE, keep=keep)
         if not (found.converged or found.iterations == 0):
-            found = self._solve(current, start, _TRANSLATION)
+            found = self._solve(current, start, _TRANSLATION, keep=keep)
         return self._unbiased(found)
 
     def fit_translation(self, current: np.ndarray, start: np.ndarray, *,
@@ -364,7 +366,7 @@ class RegionFit:
         return coefficients
 
     def _solve(self, current: np.ndarray, start: np.ndarray, free: np.ndarray,
-               max_iterations: int | None = None) -> RegionMotion:
+               max_iterations: int | None = None, keep: np.ndarray | None = None) -> RegionMotion:
         start = np.asarray(start, np.float64)
         params = start.copy()
         failed = RegionMotion(params, False, (float("nan"), float("nan")), float("nan"), 0, 0.0)
@@ -385,12 +387,14 @@ class RegionFit:
             # (A pixel between the frame's edge and one beyond it would be read from the
             # spline's mirror image of the frame, not from the scene: it is out too.)
             inside = (xs >= 0) & (ys >= 0) & (xs <= width - 1) & (ys <= height - 1)
+            if keep is not None:
+                inside &= keep
             everywhere = bool(inside.all())
             if not everywhere:
                 # Pixels the warp took out of the frame (a wall's edge as the camera drifts, a
                 # member leaving the view) are left out of this step; the fit fails where fewer
                 # than MIN_INSIDE of them stay (a lost or wild start).
-                if inside.sum() < MIN_INSIDE * inside.size:
+                if inside.sum() < MIN_INSIDE * (inside.size if keep is None else int(keep.sum())):
                     return failed
                 xs, ys = xs[inside], ys[inside]
             if window is None or not _inside(window, xs, ys, self.shape):
