@@ -144,10 +144,14 @@ def test_tracked_frames_fitted_by_their_key_s_outline_model_read_as_by_every_mod
           f"{difference.max():.4f} px, mean {difference.mean():.5f} px")
     assert rmse[0] <= rmse[1] + 0.001
     assert difference.max() < 0.1 and difference.mean() < 0.003
-    # The uncertainty keeps the key's models' disagreement: of the same size as each frame's own.
+    # The uncertainty keeps the key's models' disagreement: of the same size as each frame's own
+    # (1.227 before 2026-12-06; 1.258 since the profiles a codec copied from the reference are left
+    # out of each frame's fit, its own models then agreeing a little better than its key's; the
+    # readings the same to the last digit either way; without the key's disagreement the ratio
+    # would be that of the covariance alone, 4-10 times smaller on the bench).
     ratio = np.median(a[seen, 7] / b[seen, 7])
     print(f"sigma_dx_px, key's models first / every model: median ratio {ratio:.3f}")
-    assert 0.8 < ratio < 1.25
+    assert 0.8 < ratio < 1.3
 
 
 def test_frames_stand_alone_where_there_is_nothing_to_track(scene) -> None:
