@@ -212,6 +212,7 @@ class _FrameResult(NamedTuple):
     # The mask pixels' (u, v) for --field, and their standard uncertainty (None: the method has none).
     field: tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None] | None = None
     hidden: bool | None = None  # the method saw nothing of the scene in the frame (see Tracks.hidden)
+    holds_reference: np.ndarray | None = None  # (R,) bool, see Tracks.sigma_holds_reference
 
 
 class _PoiReadout:
@@ -244,7 +245,10 @@ class _PoiReadout:
         field = None if self._field is None else self._field.cut(flow, cdx, cdy,
                                                                   getattr(method, "last_field_sigma", None))
         hidden = getattr(method, "last_hidden", None)  # None: the method does not tell
-        return _FrameResult(cdx, cdy, residual, camera, sigma, field, None if hidden is None else bool(hidden))
+        held = getattr(method, "last_sigmas_hold_reference", None) or set()
+        holds = np.array([int(label) in own and int(label) in held for label in labels], bool)
+        return _FrameResult(cdx, cdy, residual, camera, sigma, field, None if hidden is None else bool(hidden),
+                            holds)
 
     def _compensate(self, flow: np.ndarray, dx: np.ndarray,
                     dy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -395,6 +399,7 @@ class _Collected:
         self.cameras: list[np.ndarray] = []
         self.sigmas: list[np.ndarray] = []
         self.hidden: list[bool | None] = []
+        self.holds_reference: list[np.ndarray] = []
 
     def add(self, results: _Solved, bar: tqdm) -> None:
         for index, time_s, result in results:
@@ -405,6 +410,7 @@ class _Collected:
             self.cameras.append(result.camera)
             self.sigmas.append(result.sigma)
             self.hidden.append(result.hidden)
+            self.holds_reference.append(result.holds_reference)
             if self.field is not None:
                 self.field.append(index, *result.field)
             bar.update(1)
@@ -537,6 +543,7 @@ def _assemble(collected: _Collected, source: FrameSource, regions: _Regions, xy:
     n_regions = len(regions.groups)
     camera = np.asarray(collected.cameras, np.float64) if with_camera else None
     sigma = np.asarray(collected.sigmas, np.float64)
+    holds = np.asarray(collected.holds_reference, bool).reshape(len(frame_index), n_regions)
     return Tracks(frame=frame_index, time_s=np.asarray(collected.times), dx=dx, dy=dy,
                   residual=_per_region(collected.residuals, n_regions), x_px=xy[0], y_px=xy[1],
                   reference_frame=reference_frame, offset_dx=offset[0], offset_dy=offset[1],
@@ -545,6 +552,7 @@ def _assemble(collected: _Collected, source: FrameSource, regions: _Regions, xy:
                   camera_dx=None if camera is None else _per_region(camera[..., 0], n_regions),
                   camera_dy=None if camera is None else _per_region(camera[..., 1], n_regions),
                   sigma_dx=_per_region(sigma[..., 0], n_regions), sigma_dy=_per_region(sigma[..., 1], n_regions),
+                  sigma_holds_reference=holds if n_regions > 1 else holds[:, 0],
                   region=regions.region_of if n_regions > 1 else None,
                   hidden=None if None in collected.hidden else np.asarray(collected.hidden, bool))
 

@@ -52,6 +52,8 @@ def save_raw_tracks(path: str | Path, tracks: Tracks, meta: dict[str, Any]) -> N
               else {"camera_dx_px": tracks.camera_dx, "camera_dy_px": tracks.camera_dy})
     if tracks.sigma_dx is not None:
         camera.update({"sigma_dx_px": tracks.sigma_dx, "sigma_dy_px": tracks.sigma_dy})
+    if tracks.sigma_holds_reference is not None:
+        camera["sigma_holds_reference"] = tracks.sigma_holds_reference
     if tracks.region is not None:
         camera["region"] = tracks.region
     if tracks.hidden is not None:
@@ -155,6 +157,7 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
     per_frame = ("frame", "time_s", "residual") + (("camera_dx_px", "camera_dy_px")
                                                    if "camera_dx_px" in first.small else ()) \
         + (("sigma_dx_px", "sigma_dy_px") if all("sigma_dx_px" in p.small for p in parts) else ()) \
+        + (("sigma_holds_reference",) if all("sigma_holds_reference" in p.small for p in parts) else ()) \
         + (("hidden",) if "hidden" in first.small else ())
     concat = {key: np.concatenate([p.small[key] for p in parts]) for key in per_frame}
     additive = [key for key in first.meta.get("timings", {}) if key not in NOT_ADDITIVE_TIMINGS]
@@ -170,6 +173,8 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
                     reference_digest=first.meta["identity"]["reference_digest"],
                     camera_dx=concat.get("camera_dx_px"), camera_dy=concat.get("camera_dy_px"),
                     sigma_dx=concat.get("sigma_dx_px"), sigma_dy=concat.get("sigma_dy_px"),
+                    sigma_holds_reference=(None if "sigma_holds_reference" not in concat
+                                           else concat["sigma_holds_reference"].astype(bool)),
                     region=first.small.get("region"),
                     hidden=None if "hidden" not in concat else concat["hidden"].astype(bool))
     return tracks, [p.meta for p in parts]

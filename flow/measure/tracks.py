@@ -74,6 +74,11 @@ class Tracks:
     # estimated from the kept POIs' spread when measured (sparse methods).
     sigma_dx: np.ndarray | None = None  # (F,) px
     sigma_dy: np.ndarray | None = None
+    # Where the method's sigma already holds the reference frame's own error (a fit whose
+    # residuals compare the frame with the reference, a codec floor measured against it), so
+    # that the quality step does not add it again (see flow.measure.quality.with_reference_term);
+    # None: nowhere. (F,) bool, (F, R) with regions, as the sigmas.
+    sigma_holds_reference: np.ndarray | None = None
     # Regions (a labelled mask): each POI's label; None for one region. With regions, the
     # per-frame values above (residual, camera, sigma) are (F, R), one column per label in
     # ascending order, each over (or at the centroid of) that region's POIs.
@@ -106,7 +111,8 @@ class Tracks:
                        residual=column(self.residual), x_px=self.x_px[columns], y_px=self.y_px[columns],
                        offset_dx=self.offset_dx[columns], offset_dy=self.offset_dy[columns],
                        camera_dx=column(self.camera_dx), camera_dy=column(self.camera_dy),
-                       sigma_dx=column(self.sigma_dx), sigma_dy=column(self.sigma_dy), region=None)
+                       sigma_dx=column(self.sigma_dx), sigma_dy=column(self.sigma_dy),
+                       sigma_holds_reference=column(self.sigma_holds_reference), region=None)
 
 
 @dataclass(frozen=True)

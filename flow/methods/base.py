@@ -76,7 +76,9 @@ class DenseMethod(Method):
     after each :meth:`calc` reads :attr:`last_sigmas_px`, the method's own standard
     uncertainty ``(sigma_x, sigma_y)`` of the mean displacement over each region's POIs, by
     the region's label in the mask (1 for a bool mask); a region it lacks (or None): the
-    driver estimates one. A method that measures pixels on their own also leaves, where the
+    driver estimates one. The labels in :attr:`last_sigmas_hold_reference` are those whose sigma
+    already holds the reference frame's own error (the quality step adds it to the others':
+    :func:`flow.measure.quality.with_reference_term`). A method that measures pixels on their own also leaves, where the
     driver sets :attr:`want_field_sigma` (a run writing a field file), :attr:`last_field_sigma`:
     a list of ``(rows, cols, sigma_u, sigma_v)``, pixels of the flow and their standard
     uncertainty (None: none in this frame).
@@ -93,6 +95,7 @@ class DenseMethod(Method):
     kind = "dense"
     parameters: tuple[Param, ...] = (CROP,)
     last_sigmas_px: dict[int, tuple[float, float]] | None = None
+    last_sigmas_hold_reference: set[int] | None = None
     last_field_sigma: list[tuple[np.ndarray, ...]] | None = None
     want_field_sigma: bool = False
     # Set by the driver (one event for all its jobs): set when the run is stopping. A method

@@ -161,6 +161,7 @@ def test_an_outline_less_precise_than_a_strong_texture_on_both_axes_is_refused(m
     flow = method.calc(reference, render(0.8, 0.6))
     assert abs(float(np.mean(flow[..., 0][poi])) - 0.8) < 0.25
     assert method.counts["why_outline_texture_sharper"] == 1 and method.counts["affine_readings"] == 1
+    assert method.last_sigmas_hold_reference == {1}  # the texture's sigma: the reference's error is in
 
 
 def test_a_faint_paint_reads_the_members_motion_along_itself() -> None:

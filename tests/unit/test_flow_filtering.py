@@ -221,6 +221,39 @@ def test_uncertainty_carries_the_reference_frames_own_error() -> None:
     assert np.isclose(total[0], np.hypot(5.0, 0.03))
 
 
+def test_a_sigma_that_holds_the_reference_s_error_already_is_not_given_it_twice(tmp_path) -> None:
+    """A texture fit compares the frame with the reference (both images' noise in its residuals,
+    the codec floor measured against the decoded reference): its sigma is reported as it is.
+    Given the reference's term too, a textured clip's 2-sigma coverage was 1.00 (the bench's g2,
+    g5, g7, g8). The term of the other frames is the median of theirs alone; the flags travel
+    through a part's raw-tracks file."""
+    from flow.measure.formats import load_raw_tracks, save_raw_tracks
+    from flow.measure.quality import measure, with_reference_term
+
+    rng = np.random.default_rng(5)
+    own = np.full(400, 0.03)
+    error = 0.03 * rng.standard_normal(400)  # the frame's own sigma is the whole error
+    held = np.ones(400, bool)
+    valid = np.ones(400, bool)
+    assert 0.9 <= np.mean(np.abs(error) < 2 * with_reference_term(own, valid, held)) <= 0.99
+    assert np.mean(np.abs(error) < 2 * with_reference_term(own, valid)) > 0.99  # counted twice
+    # Mixed: outline frames (0.05) get the median of theirs, texture frames (0.03) nothing.
+    own[:100], held[:100] = 0.05, False
+    total = with_reference_term(own, valid, held)
+    assert np.allclose(total[:100], 0.05 * np.sqrt(2)) and np.allclose(total[100:], 0.03)
+    # Through measure(), per region, and through a part's file and merge.
+    tracks = dataclasses.replace(_tracks_with_sigma(0.03, 0.03), sigma_holds_reference=np.ones(120, bool))
+    plain = dataclasses.replace(tracks, sigma_holds_reference=None)
+    assert np.allclose(measure(tracks).sigma_dx, tracks.sigma_dx)
+    assert np.allclose(measure(plain).sigma_dx, with_reference_term(tracks.sigma_dx, np.ones(120, bool)))
+    part = tmp_path / "part.npz"
+    save_raw_tracks(part, tracks, {"identity": {"reference_frame": 0, "reference_digest": ""},
+                                   "input": {"truncated": False, "header_frames": 120}})
+    loaded, _ = load_raw_tracks([part])
+    assert loaded.sigma_holds_reference.dtype == bool and loaded.sigma_holds_reference.all()
+    assert np.allclose(measure(loaded).sigma_dx, tracks.sigma_dx)
+
+
 def _tracks_with_sigma(sigma_dx: float, sigma_dy: float, n_frames: int = 120, seed: int = 4,
                        amplitude_px: float = 3.0):
     rng = np.random.default_rng(seed)

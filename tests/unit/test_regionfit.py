@@ -183,6 +183,9 @@ def test_the_default_measures_a_mask_of_more_than_32767_pixels() -> None:
     assert abs(float(np.mean(flow[mask, 0])) - 0.4) < 0.03
     assert abs(float(np.mean(flow[mask, 1])) + 0.2) < 0.03
     assert method.counts["affine_readings"] == 1
+    # A texture reading's sigma holds the reference's error already (its fit's residuals
+    # compare the two frames): the quality step must not add it again.
+    assert method.last_sigmas_hold_reference == {1} and set(method.last_sigmas_px) == {1}
 
 
 def test_a_lossy_codecs_error_is_measured_into_the_texture_sigma_and_a_lossless_ones_is_not() -> None:

@@ -533,6 +533,12 @@ class _Region:
                    float(np.median(reference[mask])) or 1.0, reference=reference if lossy else None,
                    codec_crf=codec_crf if lossy else None, along_fit=along_fit, texture_strength=strength)
 
+    @property
+    def strong_texture(self) -> bool:
+        """Whether the region's texture is strong enough to be fitted and taken (see
+        MIN_TEXTURE_GRADIENT; a weaker one is never fitted)."""
+        return self.texture is not None and min(self.texture_strength) >= MIN_TEXTURE_GRADIENT
+
     def restart(self) -> None:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
         self.static_known, self.along_tried, self.along_texture, self.along_seen = False, False, False, None
@@ -1251,6 +1257,7 @@ class DeepFlow(DenseMethod):
         check_pair(reference, current)
         regions = self._regions if current.shape == self._bound_shape else []
         self.last_sigmas_px = {}
+        self.last_sigmas_hold_reference = set()
         self.last_field_sigma = None  # set where a region is read pixel by pixel (see _full)
         # None where the frame is not checked (no region refined: deepflow-dense).
         self.last_hidden = None if not regions or self._scene is None else False
@@ -1285,6 +1292,11 @@ class DeepFlow(DenseMethod):
             if found is not None:
                 u, v, sigma = found
                 self.last_sigmas_px[region.label] = self._reported_sigma(region, sigma)
+                if isinstance(sigma, _TextureSigma):
+                    # Its fit's residuals compare the frame with the reference, and its codec
+                    # floor is measured against the decoded reference: the reference's own
+                    # error is in it already (see with_reference_term).
+                    self.last_sigmas_hold_reference.add(region.label)
                 flow[region.rows, region.cols, 0] = u
                 flow[region.rows, region.cols, 1] = v
         if self._chaining:
@@ -1419,7 +1431,7 @@ class DeepFlow(DenseMethod):
         dense_v = flow[region.rows, region.cols, 1]
         affine, texture, deforms = None, None, False
         # A texture too weak to be trusted is never taken (see _choose): not fitted at all.
-        strong = region.texture is not None and min(region.texture_strength) >= MIN_TEXTURE_GRADIENT
+        strong = region.strong_texture
         if strong:
             start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
             texture = None if start is None else self._texture_fit(region, current, start)
@@ -1432,7 +1444,8 @@ class DeepFlow(DenseMethod):
         outline, fit, along = None, None, None
         static = None if region.member is None else _background_static(flow, region, reference, current)
         region.static_known = static is not None
-        skip, frozen = self._copied_profiles(region, reference, current)
+        # (Not looked for where the outline is refused anyway: nor counted as left out.)
+        skip, frozen = (None, False) if static is False else self._copied_profiles(region, reference, current)
         if static is False:
             self._count(None, "outline_background_moves")
         elif frozen and affine is not None:
@@ -1550,7 +1563,7 @@ class DeepFlow(DenseMethod):
             # bar swung +-35 px: 8.4 px between two frames, read 5.7 px short).
             return None
         skip, frozen = self._copied_profiles(region, reference, current)
-        if frozen and region.texture is not None and min(region.texture_strength) >= MIN_TEXTURE_GRADIENT:
+        if frozen and region.strong_texture:
             return None  # measured in full, where the outline is refused for the texture's fit
         prior = np.column_stack(member.field.uv(region.theta))
         model, systematic, spread = region.key_outline
