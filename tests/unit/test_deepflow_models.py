@@ -190,6 +190,37 @@ def test_a_faint_paint_reads_the_members_motion_along_itself() -> None:
         assert (region.along_seen is not None) == taken
 
 
+@pytest.mark.parametrize("blur_px", [0.0, 1.5])
+def test_an_outline_model_that_cannot_draw_the_reference_s_outlines_is_not_used(blur_px) -> None:
+    """An I-beam's web between dark flanges: sharp, every outline model draws its outlines and
+    measures the frames; blurred 1.5 px (a lens out of focus) the sharp model misfits them about
+    30 times the noise (the 1 px model about 0.5 times) and is left out, the others stay."""
+    import cv2
+
+    from flow.methods.deepflow.member import BLURS, IMPLAUSIBLE_MISFIT, MemberEdges
+
+    height, width, x0, x1, band = 96, 160, 60, 100, 6
+    wall = textured(height, width, seed=7)
+    paint = 150 + smooth_noise(height, width, 2.5, np.random.default_rng(11))
+    gx, _ = grid(height, width)
+    web = np.clip(np.minimum(gx + 0.5 - x0, x1 - (gx - 0.5)), 0, 1)
+    flange = np.clip(np.minimum(gx + 0.5 - (x0 - band), (x1 + band) - (gx - 0.5)), 0, 1) - web
+    image = wall * (1 - web - flange) + 60 * flange + paint * web
+    if blur_px:
+        image = cv2.GaussianBlur(image, (0, 0), blur_px)
+    reference = to_u8(image + np.random.default_rng(5).normal(0, 1.0, (height, width)))
+    poi = np.zeros((height, width), bool)
+    poi[20:height - 20, x0 + 6:x1 - 6] = True
+    edges = MemberEdges.from_reference(reference, poi)
+    misfit = [float(np.nanmedian(o.misfit)) for o in edges.ref_by_blur]
+    if blur_px:
+        assert edges.models == tuple(range(1, len(BLURS) + 1))
+        assert misfit[0] > IMPLAUSIBLE_MISFIT * max(min(misfit), 1.0)
+    else:
+        assert edges.models == tuple(range(len(BLURS) + 1))
+        assert max(misfit) < 4.0
+
+
 def _cable(thickness: float, paint_std: float, mask_rows: tuple[int, int]) -> tuple:
     """A dark horizontal member ``thickness`` px thick, painted with ``paint_std`` grey levels of
     texture, over a bright sky (a smooth gradient), and a mask over ``mask_rows`` of it."""

@@ -86,6 +86,16 @@ from flow.methods.deepflow.checks import check_shape
 N_PREDICT = 3
 # Farthest pixel (from the first visible background pixel) a predictor is made for.
 MAX_DISTANCE = 10
+# A blur model whose outlines misfit the reference (their median weighted mean squared residual,
+# about 1 where a model explains a profile to its noise) this many times as badly as the best
+# model's, or the noise's, is not used for the frames (see MemberEdges._plausible_models).
+# Measured, the sharp model's ratio: the bench's painted bars 0.15-3.0, its shaded column 1.7, the
+# workbench's beam 0.6-9.2 (its averaged, undistorted references), the scene kinds of the tests
+# and of bench_scene_kinds 0-1.1; an I-beam's web blurred 1.5 px 38-50 and a bar over a swaying
+# background blurred so 21, where it read 0.3-0.5 px off; a textured panel 27 (read by its
+# texture). A thin cable (3 px) leaves out the 0.7 and 1 px models. (Taking the sharp model out
+# everywhere costs the bench's bars: compressed 0.187 -> 0.277 px, edge-on-thin 0.054 -> 0.087.)
+IMPLAUSIBLE_MISFIT = 16.0
 # Half length of a profile strip (pixels on each side of its centre).
 HALF = 9
 # Pixels either side of the guess where the coarse step looks for the outline.
@@ -675,6 +685,7 @@ class MemberEdges:
     def __init__(self) -> None:
         self.params = MemberParams()
         self.n_profiles = 0
+        self.models: tuple[int, ...] = tuple(range(len(BLURS) + 1))  # see _plausible_models
 
     @classmethod
     def from_reference(cls, reference: np.ndarray, mask: np.ndarray, *,
@@ -799,7 +810,26 @@ class MemberEdges:
                                              o.contrast[keep], misfit))
         self.ref = self.ref_by_blur[0]
         self.n_profiles = int(keep.sum())
+        self.models = self._plausible_models()
 
+    def _plausible_models(self) -> tuple[int, ...]:
+        """The outline models the frames are measured under (indices of :data:`BLURS`, then the
+        whole-profile match, ``len(BLURS)``): every blur model but those whose outlines misfit
+        the reference (their median weighted mean squared residual, about 1 where a model explains
+        a profile to its noise) IMPLAUSIBLE_MISFIT times as badly as the best one's, or the noise's.
+
+        The outline's blur is the optics' and the codec's, the reference's as much as a frame's:
+        a model that cannot draw the reference's outlines does not measure the frames' either.
+        The sharp one on an outline blurred beyond it (a lens out of focus, 1.5 px) locks to the
+        pixel grid: every profile of a straight outline shares that error, so its outlines agree
+        best of all and it was kept, 0.3-0.5 px off (an I-beam's web so blurred, bench_scene_kinds'
+        `ibeam`: 0.31 px RMS where DIS read 0.16; 0.030 without it); it misfit that reference 48
+        times the noise, the 1 px model 0.7 times. The whole-profile match draws no model and
+        always stays."""
+        typical = [float(np.nanmedian(o.misfit)) if np.isfinite(o.misfit).any() else np.inf
+                   for o in self.ref_by_blur]
+        bound = IMPLAUSIBLE_MISFIT * max(min(typical), 1.0)
+        return tuple(i for i, misfit in enumerate(typical) if misfit <= bound) + (len(BLURS),)
 
     # -- outline location --------------------------------------------------------------------------
 
@@ -1000,9 +1030,9 @@ class MemberEdges:
         # ringing): each blur model measures the frame, and the one under which all the
         # outlines agree best on one motion is kept; the profiles matched whole are the last
         # model (for outlines over a uniform background).
-        every = range(len(BLURS) + 1)
-        fitted = {index: self._model_fit(index, cur, start, gain, camera, prior, skip)
-                  for index in (every if first is None else sorted(set(first)))}
+        every = self.models
+        tried = every if first is None else sorted(set(first) & set(every)) or every
+        fitted = {index: self._model_fit(index, cur, start, gain, camera, prior, skip) for index in tried}
         found = [r for r in fitted.values() if r is not None]
         if first is not None and (not found or min(r.spread for r in found) > enough_spread):
             fitted.update({index: self._model_fit(index, cur, start, gain, camera, prior, skip)
