@@ -52,7 +52,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench_dic_challenge import frames_folder  # noqa: E402  (a sibling script: the DIC images as one folder)
+from bench_dic_challenge import frames_folder, method_args  # noqa: E402  (a sibling script: the DIC images as one folder)
 
 from flow.methods import registry  # noqa: E402
 from flow.methods.deepflow.member import MemberParams, _grow  # noqa: E402
@@ -100,15 +100,6 @@ def cramer_rao(folder: Path, meta: dict, mask: np.ndarray) -> tuple[float, float
         information = float(np.sum(gradient[region] ** 2)) / max(noise_var, 1e-9)
         bounds.append(float(np.sqrt(1.0 / information)) if information > 0 else float("nan"))
     return bounds[0], bounds[1]
-
-
-def method_args(spec: str) -> list[str]:
-    """``--method NAME [--param KEY=VALUE ...]`` of ``NAME[:KEY=VALUE,...]``."""
-    name, _, params = spec.partition(":")
-    args = ["--method", name]
-    for pair in filter(None, params.split(",")):
-        args += ["--param", pair]
-    return args
 
 
 def run_method(method: str, folder: Path, meta: dict, out: Path) -> dict:

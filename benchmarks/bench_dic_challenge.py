@@ -35,6 +35,10 @@ this script reads the field file:
         [--out results/bench_dic_challenge.md] [--figure results/figures/dic_challenge_sample14.png]
         [--figure12 results/figures/dic_challenge_sample12.png]
 
+A method name may carry parameters, ``deepflow:alpha=0.3`` (run as ``--method deepflow --param
+alpha=0.3``, one parameter per name since the names are comma-separated; as in bench_accuracy.py):
+its rows follow the registered methods' under that name.
+
 Each method's numbers are kept in the JSON as they come (a rerun skips what it holds, unless
 --again), so the slow methods can run apart. Prints a Markdown table; asserts nothing.
 """
@@ -98,11 +102,20 @@ def frames_folder(folder: Path, names: tuple[str, ...] | list[str], into: Path) 
 JOBS: int | None = None
 
 
+def method_args(spec: str) -> list[str]:
+    """``--method NAME [--param KEY=VALUE ...]`` of ``NAME[:KEY=VALUE,...]``."""
+    name, _, params = spec.partition(":")
+    args = ["--method", name]
+    for pair in filter(None, params.split(",")):
+        args += ["--param", pair]
+    return args
+
+
 def track(frames: Path, method: str, rect: str | None, out: Path, *, mask: Path | None = None) -> dict:
     """``refflow track`` with the method's defaults over ``rect`` (or ``mask``); the field file
     and the run's timings."""
     region = ["--rect", rect] if mask is None else ["--mask", str(mask)]
-    cmd = [str(REFFLOW), "track", str(frames), "--fps", "1", *region, "--method", method, "--no-progress",
+    cmd = [str(REFFLOW), "track", str(frames), "--fps", "1", *region, *method_args(method), "--no-progress",
            "--out", str(out.with_suffix(".csv")), "--field", str(out.with_suffix(".h5"))]
     if JOBS is not None:
         cmd += ["--jobs", str(JOBS)]
@@ -618,7 +631,8 @@ def main() -> None:
                     holder[method] = {"error": str(err)}
                 store.parent.mkdir(parents=True, exist_ok=True)
                 store.write_text(json.dumps(results, indent=1))
-    shown = [m for m in DENSE if any(m in results.get(key, {}) for key in samples)]
+    shown = [m for m in (*DENSE, *(m for m in methods if m not in DENSE))
+             if any(m in results.get(key, {}) for key in samples)]
     text = table(results, shown)
     print(text)
     Path(args.out).write_text(text + "\n")
