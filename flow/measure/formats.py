@@ -157,9 +157,12 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
     per_frame = ("frame", "time_s", "residual") + (("camera_dx_px", "camera_dy_px")
                                                    if "camera_dx_px" in first.small else ()) \
         + (("sigma_dx_px", "sigma_dy_px") if all("sigma_dx_px" in p.small for p in parts) else ()) \
-        + (("sigma_holds_reference",) if all("sigma_holds_reference" in p.small for p in parts) else ()) \
         + (("hidden",) if "hidden" in first.small else ())
     concat = {key: np.concatenate([p.small[key] for p in parts]) for key in per_frame}
+    if "sigma_dx_px" in concat and any("sigma_holds_reference" in p.small for p in parts):
+        # A part from before the flag: none of its frames' sigma held the reference's error.
+        concat["sigma_holds_reference"] = np.concatenate([
+            p.small.get("sigma_holds_reference", np.zeros(np.shape(p.small["residual"]), bool)) for p in parts])
     additive = [key for key in first.meta.get("timings", {}) if key not in NOT_ADDITIVE_TIMINGS]
     timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts)
                for key in dict.fromkeys(["setup_s", "frames_s", *additive])}

@@ -252,6 +252,24 @@ def test_a_sigma_that_holds_the_reference_s_error_already_is_not_given_it_twice(
     loaded, _ = load_raw_tracks([part])
     assert loaded.sigma_holds_reference.dtype == bool and loaded.sigma_holds_reference.all()
     assert np.allclose(measure(loaded).sigma_dx, tracks.sigma_dx)
+    # A part from before the flag merged with one after: its frames get the term, the others not.
+    meta = {"identity": {"reference_frame": 0, "reference_digest": ""},
+            "input": {"truncated": False, "header_frames": 120}}
+    old, new = tmp_path / "old.npz", tmp_path / "new.npz"
+    first, rest = np.arange(120) < 50, np.arange(120) >= 50
+
+    def part_of(keep):
+        return dataclasses.replace(tracks, frame=tracks.frame[keep], time_s=tracks.time_s[keep],
+                                   dx=tracks.dx[keep], dy=tracks.dy[keep], residual=tracks.residual[keep],
+                                   sigma_dx=tracks.sigma_dx[keep], sigma_dy=tracks.sigma_dy[keep],
+                                   sigma_holds_reference=tracks.sigma_holds_reference[keep])
+
+    save_raw_tracks(old, dataclasses.replace(part_of(first), sigma_holds_reference=None), meta)
+    save_raw_tracks(new, part_of(rest), meta)
+    merged, _ = load_raw_tracks([new, old])
+    assert np.array_equal(merged.sigma_holds_reference, rest)
+    sigma = measure(merged).sigma_dx
+    assert np.allclose(sigma[rest], tracks.sigma_dx[rest]) and np.all(sigma[first] > tracks.sigma_dx[first])
 
 
 def _tracks_with_sigma(sigma_dx: float, sigma_dy: float, n_frames: int = 120, seed: int = 4,

@@ -997,9 +997,10 @@ class MemberEdges:
         Raises ``ValueError`` naming the shapes if ``current`` is not the reference's shape or
         ``prior_uv`` not ``(n_profiles, 2)`` (the numba kernels do not bounds-check).
 
-        Every outline model (:data:`BLURS`, then the whole-profile match: index
-        ``len(BLURS)``) measures the frame and the one whose outlines agree best is kept. With
-        ``first`` only those models measure it, and the rest only where the best of them has a
+        Every plausible outline model (:data:`BLURS`, then the whole-profile match: index
+        ``len(BLURS)``; those that draw the reference's outlines, see :meth:`_plausible_models`)
+        measures the frame and the one whose outlines agree best is kept. With ``first`` only
+        those of them measure it, and the rest only where the best of them has a
         spread above ``enough_spread`` px; where the rest are not needed, the models'
         disagreement is ``systematic`` (px, x and y: a chain key's, see :meth:`mean_sigma`).
         ``skip``: ``(n_profiles,)`` bool, profiles left out of the fits (a codec copied their

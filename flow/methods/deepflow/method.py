@@ -466,7 +466,8 @@ class _OutlineSigma(tuple):
 def _first_models(key: int) -> tuple[int, ...]:
     """The outline models a tracked frame tries first (see TRACKED_SPREAD_RATIO): its chain
     key's ``key`` and the blur models either side of it, the sharp one and the whole-profile
-    match (index ``len(BLURS)``)."""
+    match (index ``len(BLURS)``); of them, the member measures a frame under the plausible ones
+    only (see :meth:`MemberEdges.fit`)."""
     near = {key - 1, key, key + 1} if key < len(BLURS) else {key}
     return tuple(sorted({0, len(BLURS)} | (near & set(range(len(BLURS) + 1)))))
 
