@@ -36,11 +36,14 @@ def smooth_noise(height: int, width: int, sigma: float, rng: np.random.Generator
     return noise / noise.std()
 
 
-def _shift_rows(image: np.ndarray, shifts: np.ndarray) -> np.ndarray:
-    """Each row of ``image`` moved right by its own (sub-pixel) shift, exactly (Fourier)."""
-    fx = np.fft.fftfreq(image.shape[1])[None, :]
-    phase = np.exp(-2j * np.pi * fx * shifts[:, None])
-    return np.fft.ifft(np.fft.fft(image, axis=1) * phase, axis=1).real
+def _shift_rows(spectrum: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """Each row of the image whose row spectra are ``spectrum`` (``np.fft.fft(image, axis=1)``,
+    made once per clip) moved right by its own (sub-pixel) shift, exactly (Fourier)."""
+    fx = np.fft.fftfreq(spectrum.shape[1])[None, :]
+    # One row of phases where every row moves alike (no bend): the same numbers, made once.
+    same = bool(np.all(shifts == shifts[0]))
+    phase = np.exp(-2j * np.pi * fx * (shifts[:1, None] if same else shifts[:, None]))
+    return np.fft.ifft(spectrum * phase, axis=1).real
 
 
 @dataclass
@@ -98,16 +101,18 @@ def make_clip(*, seed: int = 0, frames: int = 90, fps: float = 60.0, height: int
     mask[int(0.28 * h):int(0.94 * h), x0 + mask_margin:x1 - mask_margin] = True
     mask_rows = np.nonzero(mask.any(axis=1))[0]
     gx = (np.arange(W) + 0.5) / UP  # column centres, final pixels
+    spectrum = np.fft.fft(paint, axis=1)  # the paint's rows, once: every frame shifts them
     out = np.empty((frames, h, w), np.uint8)
     truth = np.empty(frames)
     for i in range(frames):
         shift = base[i] * row_gain  # per fine row, final pixels
-        left = x0 + shift[:, None]
-        right = x1 + shift[:, None]
+        rows_alike = shift[:1] if bend == 0 else shift  # one row's coverage serves all (no bend)
+        left = x0 + rows_alike[:, None]
+        right = x1 + rows_alike[:, None]
         # Area coverage of each fine pixel by the displaced member.
         cover = np.clip(np.minimum(gx[None, :] + 0.5 / UP - left, right - (gx[None, :] - 0.5 / UP)) * UP,
                         0, 1)
-        moved = _shift_rows(paint, shift * UP)[:, pad:pad + W]
+        moved = _shift_rows(spectrum, shift * UP)[:, pad:pad + W]
         fine = cover * moved + (1 - cover) * wall
         if blur_px > 0:  # the lens: a Gaussian point spread, drawn at the fine scale
             fine = cv2.GaussianBlur(fine, (0, 0), blur_px * UP)
