@@ -164,7 +164,9 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
         concat["sigma_holds_reference"] = np.concatenate([
             p.small.get("sigma_holds_reference", np.zeros(np.shape(p.small["residual"]), bool)) for p in parts])
     additive = [key for key in first.meta.get("timings", {}) if key not in NOT_ADDITIVE_TIMINGS]
-    timings = {key: sum(p.meta.get("timings", {}).get(key, 0.0) for p in parts)
+    # Counts and seconds add up over the parts; a length (a key ending in _px, e.g. the codec
+    # floor each part measures alike) is the largest of theirs, as over a run's jobs.
+    timings = {key: (max if key.endswith("_px") else sum)(p.meta.get("timings", {}).get(key, 0.0) for p in parts)
                for key in dict.fromkeys(["setup_s", "frames_s", *additive])}
     timings["frames_per_s"] = len(concat["frame"]) / max(timings["frames_s"], 1e-9)
     tracks = Tracks(frame=concat["frame"], time_s=concat["time_s"], dx=dx, dy=dy, residual=concat["residual"],

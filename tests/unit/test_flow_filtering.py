@@ -254,7 +254,8 @@ def test_a_sigma_that_holds_the_reference_s_error_already_is_not_given_it_twice(
     assert np.allclose(measure(loaded).sigma_dx, tracks.sigma_dx)
     # A part from before the flag merged with one after: its frames get the term, the others not.
     meta = {"identity": {"reference_frame": 0, "reference_digest": ""},
-            "input": {"truncated": False, "header_frames": 120}}
+            "input": {"truncated": False, "header_frames": 120},
+            "timings": {"frames_s": 1.0, "full_frames": 3.0, "codec_floor_x_px": 0.03}}
     old, new = tmp_path / "old.npz", tmp_path / "new.npz"
     first, rest = np.arange(120) < 50, np.arange(120) >= 50
 
@@ -268,6 +269,8 @@ def test_a_sigma_that_holds_the_reference_s_error_already_is_not_given_it_twice(
     save_raw_tracks(new, part_of(rest), meta)
     merged, _ = load_raw_tracks([new, old])
     assert np.array_equal(merged.sigma_holds_reference, rest)
+    # The parts' counts add up; a length each part measured alike (the codec floor) does not.
+    assert merged.timings_s["full_frames"] == 6.0 and merged.timings_s["codec_floor_x_px"] == 0.03
     sigma = measure(merged).sigma_dx
     assert np.allclose(sigma[rest], tracks.sigma_dx[rest]) and np.all(sigma[first] > tracks.sigma_dx[first])
 
