@@ -243,6 +243,7 @@ def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) 
     assert sum(timings[f"{m}_readings"] for m in ("outline", "affine", "dense")) == FRAMES
     choices = [k for k in timings if k.startswith("why_") and k.removeprefix("why_") not in REFUSALS]
     assert sum(timings[k] for k in choices) == timings["full_frames"]
+    assert timings["outline_models_left_out"] == 0  # sharp scenes: every outline model draws them
     if kind in ("panel", "whole-view", "rotation", "windows"):  # strong texture: the texture fit
         assert timings["affine_readings"] >= 0.9 * FRAMES and timings["why_texture_fixes_motion"] >= 1
     if kind == "along":  # the outline across the bar, the paint's own fit along it
@@ -270,6 +271,8 @@ def test_an_outline_blurred_beyond_the_sharp_model_is_read_by_the_models_that_fi
     assert ours[0] <= min(max(1.1 * base[0], 0.05), 0.06)
     assert abs(ours[1] - 1.0) <= 0.015 and ours[2] >= 0.95
     assert ours[3]["outline_readings"] >= 0.9 * FRAMES
+    # The sidecar says the outline was read without the models the soft reference ruled out.
+    assert ours[3]["outline_models_left_out"] == ours[3]["outline_readings"]
 
 
 # A few tenths of a pixel under heavy compression: x264 repeats the reference's blocks where the

@@ -1117,7 +1117,7 @@ class DeepFlow(DenseMethod):
         # (``reach_widened``: dense solves done again with a longer reach, see WIDEN_SHARE.)
         self.counts = dict.fromkeys(("full_frames", "warm_frames", "hidden_frames", "outline_readings", "affine_readings",
                                      "dense_readings", "background_texture_readings", "along_texture", "reach_widened",
-                                     "outline_every_model", "codec_copies_left_out",
+                                     "outline_every_model", "outline_models_left_out", "codec_copies_left_out",
                                      "codec_floor_s",
                                      "codec_floor_x_px", "codec_floor_y_px",
                                      *(f"why_{reason}" for reason in REASONS)), 0)
@@ -1298,6 +1298,10 @@ class DeepFlow(DenseMethod):
                     # floor is measured against the decoded reference: the reference's own
                     # error is in it already (see with_reference_term).
                     self.last_sigmas_hold_reference.add(region.label)
+                elif isinstance(sigma, _OutlineSigma) and len(region.member.models) <= len(BLURS):
+                    # Read without the blur models that cannot draw the reference's outlines
+                    # (a soft reference: the lens out of focus; see MemberEdges._plausible_models).
+                    self.counts["outline_models_left_out"] += 1
                 flow[region.rows, region.cols, 0] = u
                 flow[region.rows, region.cols, 1] = v
         if self._chaining:
