@@ -125,7 +125,8 @@ def track(frames: Path, method: str, rect: str | None, out: Path, *, mask: Path 
         raise RuntimeError(proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}")
     sidecar = json.loads(out.with_suffix(".json").read_text())
     timings = sidecar["timings"]
-    models = {k: timings[k] for k in ("affine_readings", "outline_readings", "dense_readings") if k in timings}
+    models = {k: timings[k] for k in timings
+              if k in ("affine_readings", "outline_readings", "dense_readings") or k.startswith("field_window_")}
     return {"wall_s": time.perf_counter() - started, "models": models}
 
 

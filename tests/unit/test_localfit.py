@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+import flow.methods.deepflow.localfit as localfit
 import flow.methods.deepflow.method as deepflow_module
 from flow.methods.deepflow.localfit import refine_locally
 
@@ -55,6 +56,86 @@ def test_a_small_deformation_is_read_at_its_scale_by_the_default() -> None:
     assert _gain(dense_read, truth) < 0.96  # the shortfall the step is for
     assert abs(_gain(read, truth) - 1) < 0.03
     assert np.sqrt(np.mean((read - truth) ** 2)) < 0.8 * np.sqrt(np.mean((dense_read - truth) ** 2))
+
+
+def _noisy_sine(amplitude: float, period_px: float, noise: float, *, width: int = 480, height: int = 160):
+    """A speckle and its copy deformed by a sine along x, each with its own sensor noise (grey
+    levels), and the POIs: all but a 12 px border."""
+    rng = np.random.default_rng(3)
+    shift = amplitude * np.sin(2 * np.pi * np.arange(width) / period_px)
+    frames = [np.clip(sine.speckle(s, width=width, height=height) + rng.normal(0, noise, (height, width)), 0, 255)
+              .astype(np.uint8) for s in (0.0, shift)]
+    poi = np.zeros((height, width), bool)
+    poi[12:-12, 12:-12] = True
+    return frames, poi, shift[12:-12]
+
+
+def _read_columns(frames, poi, monkeypatch=None) -> tuple[np.ndarray, dict]:
+    method = deepflow_module.DeepFlow()
+    method.bind(frames[0], poi)
+    flow = method.calc(*frames)
+    assert method.counts["why_dense_deforms"] == 1
+    windows = {k: v for k, v in method.counts.items() if k.startswith("field_window_") and v}
+    return np.nanmean(np.where(poi, flow[..., 0], np.nan)[:, 12:-12], axis=0), windows
+
+
+def test_a_deformation_of_long_wavelength_is_read_through_a_wider_window(monkeypatch) -> None:
+    """A 0.2 and a 0.3 px sine of a 400 px period under 2 grey levels of noise, and a 0.1 px one
+    under 3: the default reads them through a wider window than the base's 8 px (24-32 px
+    here), and their column means closer than the base window alone (0.0064 -> 0.0051 px,
+    0.0066 -> 0.0054, 0.0085 -> 0.0063), within 1 % of the gain, and at the region's ends (the
+    windows cut by its edge, where the base field is kept) no worse."""
+    for amplitude, noise in ((0.2, 2.0), (0.3, 2.0), (0.1, 3.0)):
+        frames, poi, truth = _noisy_sine(amplitude, 400.0, noise)
+        read, windows = _read_columns(frames, poi)
+        monkeypatch.setattr(localfit, "WIDER_WINDOWS_PX", ())
+        base, base_windows = _read_columns(frames, poi)
+        monkeypatch.undo()
+        assert base_windows == {"field_window_8px": 1} and len(windows) == 1
+        assert windows.keys() <= {"field_window_24px", "field_window_32px"}
+
+        def rmse(columns, part=slice(None), truth=truth):
+            return float(np.sqrt(np.mean((columns[part] - truth[part]) ** 2)))
+
+        assert rmse(read) < 0.85 * rmse(base), (amplitude, rmse(read), rmse(base))
+        assert abs(_gain(read, truth) - _gain(base, truth)) < 0.01
+        for end in (slice(0, 40), slice(-40, None)):
+            assert rmse(read, end) < 1.1 * rmse(base, end), (amplitude, rmse(read, end), rmse(base, end))
+
+
+def test_a_deformation_of_short_wavelength_keeps_the_base_window(monkeypatch) -> None:
+    """A 0.2 px sine of a 60 px period (a 16 px window reads it 10 % short): the base window is
+    kept, and the reading is the base window's, bit for bit."""
+    frames, poi, _ = _noisy_sine(0.2, 60.0, 2.0)
+    read, windows = _read_columns(frames, poi)
+    monkeypatch.setattr(localfit, "WIDER_WINDOWS_PX", ())
+    base, _ = _read_columns(frames, poi)
+    assert windows == {"field_window_8px": 1}
+    np.testing.assert_array_equal(read, base)
+
+
+def test_the_wider_windows_are_tried_widest_first_then_by_bisection(monkeypatch) -> None:
+    """Which windows are read, for each answer of the attenuation test: one try where the
+    widest is acceptable, three at most, and the widest acceptable one kept (the POIs 64 px
+    deep and more read by it alone, see _inset)."""
+    rows, cols = (a.ravel() for a in np.mgrid[0:160, 0:160])  # 64 px deep and more: the wider window's
+    base = (np.zeros(rows.size), np.zeros(rows.size))
+    for widest_ok, expected_tries in ((32.0, [32.0]), (24.0, [32.0, 16.0, 24.0]), (16.0, [32.0, 16.0, 24.0]),
+                                      (12.0, [32.0, 16.0, 12.0]), (8.0, [32.0, 16.0, 12.0])):
+        tried = []
+
+        def fake_refine(reference, current, rows, cols, u, v, *, window_px, with_sigma, tried=tried):
+            tried.append(window_px)
+            return u + window_px, v
+
+        def fake_attenuation(rows, cols, field, smoother, widest_ok=widest_ok):
+            return 1.0 if float(np.max(smoother[0])) <= widest_ok else 1.5
+
+        monkeypatch.setattr(localfit, "refine_locally", fake_refine)
+        monkeypatch.setattr(localfit, "attenuation", fake_attenuation)
+        (u, _), window = localfit.refine_adaptively(None, None, rows, cols, base)
+        assert tried == expected_tries and window == widest_ok
+        assert np.max(u) == (widest_ok if widest_ok > 8 else 0.0)
 
 
 def test_one_step_takes_off_most_of_a_long_wavelengths_shortfall() -> None:

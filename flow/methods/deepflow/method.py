@@ -34,7 +34,12 @@ from flow.methods.deepflow.deepmatching import (
     search_radius,
 )
 from flow.methods.deepflow.hidden import SceneCheck
-from flow.methods.deepflow.localfit import refine_locally
+from flow.methods.deepflow.localfit import (
+    WIDER_WINDOWS_PX,
+    WINDOW_PX,
+    refine_adaptively,
+    refine_locally,
+)
 from flow.methods.deepflow.member import BLURS, MemberEdges, MemberFit, context_px
 from flow.methods.deepflow.regionfit import RegionFit, RegionMotion, affine_departure
 from flow.methods.deepflow.variational import VariationalParams, Workspace, refine
@@ -1120,6 +1125,7 @@ class DeepFlow(DenseMethod):
                                      "outline_every_model", "outline_models_left_out", "codec_copies_left_out",
                                      "codec_floor_s",
                                      "codec_floor_x_px", "codec_floor_y_px",
+                                     *(f"field_window_{w:g}px" for w in (WINDOW_PX, *WIDER_WINDOWS_PX)),
                                      *(f"why_{reason}" for reason in REASONS)), 0)
         # The matching's reach (see BASE_REACH_PX): the chain's POIs' latest motion (px, None:
         # none seen yet), the reach of the latest dense solve (the window it took is
@@ -1507,6 +1513,10 @@ class DeepFlow(DenseMethod):
                 chosen, model, reason, refined = outline, "outline", "outline_matches_better", None
         self._count(model, reason)
         if refined is not None:
+            # The widest window the field's own deformation allows (see refine_adaptively).
+            refined, window = refine_adaptively(reference, current, region.rows, region.cols, refined,
+                                                with_sigma=self.want_field_sigma)
+            self.counts[f"field_window_{window:g}px"] += 1
             flow[region.rows, region.cols, 0] = refined[0]
             flow[region.rows, region.cols, 1] = refined[1]
             if self.want_field_sigma:
