@@ -70,7 +70,7 @@ def _noisy_sine(amplitude: float, period_px: float, noise: float, *, width: int 
     return frames, poi, shift[12:-12]
 
 
-def _read_columns(frames, poi, monkeypatch=None) -> tuple[np.ndarray, dict]:
+def _read_columns(frames, poi) -> tuple[np.ndarray, dict]:
     method = deepflow_module.DeepFlow()
     method.bind(frames[0], poi)
     flow = method.calc(*frames)
@@ -114,6 +114,33 @@ def test_a_deformation_of_short_wavelength_keeps_the_base_window(monkeypatch) ->
     np.testing.assert_array_equal(read, base)
 
 
+def test_where_the_wider_window_takes_no_step_the_base_reading_and_its_sigma_stay() -> None:
+    """A block with a 10 px arm (a reviewer's case): a 32 px window holds too few of the arm's
+    POIs to take a step there, and the arm keeps the 8 px reading and its sigma (every arm POI
+    that had one: the wider window's missing sigma blended in had left 970 of 1400 without);
+    the block deep inside is read through the wider window."""
+    width, height = 360, 200
+    rng = np.random.default_rng(0)
+    shift = 0.2 * np.sin(2 * np.pi * np.arange(width) / 400)
+    frames = [np.clip(sine.speckle(s, width=width, height=height) + rng.normal(0, 2, (height, width)), 0, 255)
+              .astype(np.uint8) for s in (0.0, shift)]
+    region = np.zeros((height, width), bool)
+    region[20:180, 20:200] = True
+    region[95:105, 200:340] = True
+    rows, cols = np.nonzero(region)
+    base = refine_locally(*frames, rows, cols, np.zeros(rows.size), np.zeros(rows.size), with_sigma=True)
+    (u, v, sigma_u, sigma_v), window = localfit.refine_adaptively(*frames, rows, cols, base, with_sigma=True)
+    assert window > localfit.WINDOW_PX
+    arm = cols >= 200
+    had = np.isfinite(base[2]) & arm
+    assert had.sum() > 1000
+    np.testing.assert_array_equal(u[had], base[0][had])
+    np.testing.assert_array_equal(sigma_u[had], base[2][had])
+    np.testing.assert_array_equal(sigma_v[had], base[3][had])
+    deep = localfit._depth(rows, cols) >= 2 * window
+    assert np.isfinite(sigma_u[deep]).all() and np.all(sigma_u[deep] < 0.8 * base[2][deep])
+
+
 def test_the_wider_windows_are_tried_widest_first_then_by_bisection(monkeypatch) -> None:
     """Which windows are read, for each answer of the attenuation test: one try where the
     widest is acceptable, three at most, and the widest acceptable one kept (the POIs 64 px
@@ -126,7 +153,7 @@ def test_the_wider_windows_are_tried_widest_first_then_by_bisection(monkeypatch)
 
         def fake_refine(reference, current, rows, cols, u, v, *, window_px, with_sigma, tried=tried):
             tried.append(window_px)
-            return u + window_px, v
+            return u + window_px, v, np.zeros_like(u), np.zeros_like(v)
 
         def fake_attenuation(rows, cols, field, smoother, widest_ok=widest_ok):
             return 1.0 if float(np.max(smoother[0])) <= widest_ok else 1.5

@@ -258,15 +258,17 @@ def refine_adaptively(reference: np.ndarray, current: np.ndarray, rows: np.ndarr
     rows = np.asarray(rows, np.intp)
     cols = np.asarray(cols, np.intp)
     depth = _depth(rows, cols)
-    windows = [w for w in WIDER_WINDOWS_PX if float(depth.max()) > 2.0 * WINDOW_PX]
+    # (Only windows some POI lies deep enough to be read through alone: see _inset.)
+    windows = [w for w in WIDER_WINDOWS_PX if float(depth.max()) >= 2.0 * w]
     kept, window = base, WINDOW_PX
     low, high = -1, len(windows)  # windows[low] acceptable (-1: the base), windows[high] not
     trial = high - 1
     while low + 1 < high:
         wider = windows[trial]
         start = [_smoothed_over(rows, cols, base[k], wider) for k in (0, 1)]
-        found = _inset(depth, base, refine_locally(reference, current, rows, cols, *start, window_px=wider,
-                                                   with_sigma=with_sigma), wider)
+        # (Its sigma tells where its step was taken: see _inset.)
+        read = refine_locally(reference, current, rows, cols, *start, window_px=wider, with_sigma=True)
+        found = _inset(depth, base, read if with_sigma else read[:2], np.isfinite(read[2]), wider)
         if attenuation(rows, cols, base[:2], found[:2]) <= 1.0 + MAX_ATTENUATION:
             low, kept, window = trial, found, wider
         else:
@@ -284,16 +286,20 @@ def _depth(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
 
 
 def _inset(depth: np.ndarray, base: tuple[np.ndarray, ...], wider: tuple[np.ndarray, ...],
-           window_px: float) -> tuple[np.ndarray, ...]:
+           stepped: np.ndarray, window_px: float) -> tuple[np.ndarray, ...]:
     """``wider`` (read through windows of ``window_px``) where a POI lies (``depth``, px) at
     least twice that inside the region, ``base`` within twice the base window of its edge, and
     between the two in proportion: a window cut by the edge averages the field on one side of
     its POI, and reads a slope there short by the slope times the distance it reaches in (a
     0.3 px sine of 400 px period at 24 px: 0.09 px at the edge; its column means' RMSE 0.0072 px
-    against 0.0054 so inset, the base window's 0.0066)."""
+    against 0.0054 so inset, the base window's 0.0066). ``base`` wherever the wider window took
+    no step (``stepped`` False: too few POIs or too little texture in it, a step too long):
+    there ``wider`` holds its start, the base field smoothed over the window, no reading. Where
+    both are blended, their sigmas (if given) are blended alike (NaN where either has none)."""
     near, far = 2.0 * WINDOW_PX, 2.0 * window_px
-    share = np.clip((depth - near) / (far - near), 0.0, 1.0)
-    return tuple(share * w + (1.0 - share) * b for b, w in zip(base, wider, strict=True))
+    share = np.where(stepped, np.clip((depth - near) / (far - near), 0.0, 1.0), 0.0)
+    return tuple(np.where(share >= 1.0, w, np.where(share <= 0.0, b, share * w + (1.0 - share) * b))
+                 for b, w in zip(base, wider, strict=True))
 
 
 def attenuation(rows: np.ndarray, cols: np.ndarray, field: tuple[np.ndarray, np.ndarray],
