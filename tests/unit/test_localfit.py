@@ -141,6 +141,46 @@ def test_where_the_wider_window_takes_no_step_the_base_reading_and_its_sigma_sta
     assert np.isfinite(sigma_u[deep]).all() and np.all(sigma_u[deep] < 0.8 * base[2][deep])
 
 
+def test_a_local_feature_on_a_smooth_deformation_keeps_the_base_window_about_it(monkeypatch) -> None:
+    """A 0.3 px bump (Gaussian, 12 px) on a 0.3 px sine of 900 px period: the region is read
+    through a wider window, which would read the bump's peak 0.32 px (truth 0.54; the 8 px
+    window 0.52) and its neighbourhood 0.16 px RMS (8 px: 0.017); about the bump the 8 px field
+    is kept: read as the 8 px window reads it, the region as a whole no worse."""
+    import cv2
+
+    width, height = 600, 300
+    rng = np.random.default_rng(5)
+    pattern = cv2.GaussianBlur(rng.normal(0, 1, (height + 40, width + 40)).astype(np.float32), (0, 0), 1.5)
+    pattern = 128 + 50 * pattern / pattern.std()
+    xs, ys = np.meshgrid(np.arange(width + 40, dtype=np.float32), np.arange(height + 40, dtype=np.float32))
+    field = (0.3 * np.sin(2 * np.pi * xs / 900) + 0.3 * np.exp(-((xs - 320) ** 2 + (ys - 170) ** 2) / (2 * 12.0 ** 2)))
+    field = field.astype(np.float32)
+    frames = [np.clip(image + rng.normal(0, 2, image.shape), 0, 255)[20:-20, 20:-20].astype(np.uint8)
+              for image in (pattern, cv2.remap(pattern, xs - field, ys, cv2.INTER_CUBIC))]
+    truth = field[20:-20, 20:-20]
+    poi = np.zeros((height, width), bool)
+    poi[10:-10, 10:-10] = True
+    near = np.hypot(*(np.mgrid[0:height, 0:width] - np.array([150, 300])[:, None, None])) < 12
+
+    def read():
+        method = deepflow_module.DeepFlow()
+        method.bind(frames[0], poi)
+        flow = method.calc(*frames)
+        windows = {k for k, v in method.counts.items() if k.startswith("field_window_") and v}
+        return flow[..., 0], windows
+
+    adaptive, windows = read()
+    monkeypatch.setattr(localfit, "WIDER_WINDOWS_PX", ())
+    base, _ = read()
+    assert windows & {"field_window_24px", "field_window_32px"}
+
+    def rms(flow, where):
+        return float(np.sqrt(np.mean((flow - truth)[where] ** 2)))
+
+    assert rms(adaptive, near) < 1.1 * rms(base, near) and abs(adaptive[150, 300] - base[150, 300]) < 0.01
+    assert rms(adaptive, poi) <= 1.02 * rms(base, poi)
+
+
 def test_the_wider_windows_are_tried_widest_first_then_by_bisection(monkeypatch) -> None:
     """Which windows are read, for each answer of the attenuation test: one try where the
     widest is acceptable, three at most, and the widest acceptable one kept (the POIs 64 px
