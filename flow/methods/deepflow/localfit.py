@@ -58,6 +58,9 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from flow.measure.robust import MAD_TO_SIGMA
+from flow.methods.deepflow.regionfit import departure_from_affine
+
 # The Gaussian window's standard deviation, px (Sample 14, the default through the CLI: L1 / L3 /
 # L5 column-mean RMSE 0.0035 / 0.0037 / 0.0049 px, gain 0.993 / 0.995 / 0.973; a first version
 # without offset and gain, in a script: 16 px 0.0034 / 0.0036 / 0.0067, L5 gain 0.971, a wider
@@ -297,7 +300,7 @@ def _keep_local_features(rows: np.ndarray, cols: np.ndarray, base: tuple[np.ndar
     if ok.sum() < 16:
         return wider
     middle = float(np.median(difference[ok]))
-    spread = 1.4826 * float(np.median(np.abs(difference[ok] - middle)))
+    spread = MAD_TO_SIGMA * float(np.median(np.abs(difference[ok] - middle)))
     standing_out = ok & (difference > middle + FEATURE_MADS * max(spread, 1e-6))
     if not standing_out.any():
         return wider
@@ -347,14 +350,9 @@ def attenuation(rows: np.ndarray, cols: np.ndarray, field: tuple[np.ndarray, np.
         ok &= np.isfinite(values)
     if ok.sum() < 4:
         return float("nan")
-    dx = cols[ok] - cols[ok].mean()
-    dy = rows[ok] - rows[ok].mean()
-    design = np.column_stack([np.ones(dx.size), dx, dy]).astype(np.float64)
     product = square = 0.0
     for a, b in zip(field, smoother, strict=True):
-        a, b = np.asarray(a, np.float64)[ok], np.asarray(b, np.float64)[ok]
-        a = a - design @ np.linalg.lstsq(design, a, rcond=None)[0]
-        b = b - design @ np.linalg.lstsq(design, b, rcond=None)[0]
+        a, b = (departure_from_affine(rows[ok], cols[ok], np.asarray(x, np.float64)[ok]) for x in (a, b))
         product += float(a @ b)
         square += float(b @ b)
     return product / square if square > 0 else float("nan")

@@ -509,9 +509,6 @@ def affine_departure(rows: np.ndarray, cols: np.ndarray, u: np.ndarray, v: np.nd
     rows, cols = rows[ok], cols[ok]
     r0, c0 = int(rows.min()), int(cols.min())
     shape = (int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1)
-    dx = (cols - cols.mean()) / max(float(np.ptp(cols)), 1.0)
-    dy = (rows - rows.mean()) / max(float(np.ptp(rows)), 1.0)
-    design = np.column_stack([np.ones_like(dx), dx, dy])
     inside = np.zeros(shape, np.float64)
     inside[rows - r0, cols - c0] = 1.0
     interior = ndimage.distance_transform_edt(np.pad(inside, 1))[1:-1, 1:-1] > DEFORM_INSET_PX
@@ -520,8 +517,7 @@ def affine_departure(rows: np.ndarray, cols: np.ndarray, u: np.ndarray, v: np.nd
     weight = ndimage.gaussian_filter(inside, DEFORM_SCALE_PX, mode="constant")
     smooth_sq = fine_sq = 0.0
     for component in (u, v):
-        values = np.asarray(component, np.float64)[ok]
-        departure = values - design @ np.linalg.lstsq(design, values, rcond=None)[0]
+        departure = departure_from_affine(rows, cols, np.asarray(component, np.float64)[ok])
         image = np.zeros(shape)
         image[rows - r0, cols - c0] = departure
         smooth = ndimage.gaussian_filter(image, DEFORM_SCALE_PX, mode="constant") / np.maximum(weight, 1e-12)
@@ -531,6 +527,15 @@ def affine_departure(rows: np.ndarray, cols: np.ndarray, u: np.ndarray, v: np.nd
         # leaves its rest large there, and is no noise of the rest of the region.
         fine_sq += (MAD_TO_SIGMA * float(np.median(np.abs((image - smooth)[interior])))) ** 2
     return float(np.sqrt(smooth_sq)), float(np.sqrt(fine_sq))
+
+
+def departure_from_affine(rows: np.ndarray, cols: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values`` at the pixels ``rows``, ``cols`` less their own affine least-squares fit (a
+    plane in x and y: what no affine field holds)."""
+    dx = (cols - cols.mean()) / max(float(np.ptp(cols)), 1.0)
+    dy = (rows - rows.mean()) / max(float(np.ptp(rows)), 1.0)
+    design = np.column_stack([np.ones_like(dx), dx, dy])
+    return values - design @ np.linalg.lstsq(design, values, rcond=None)[0]
 
 
 def _periodic(fraction: np.ndarray) -> np.ndarray:
