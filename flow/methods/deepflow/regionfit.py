@@ -16,7 +16,12 @@ criterion: gain and offset fall out).
   B-spline by far less) and composes the inverse of the increment into the warp.
 * Robustness: iteratively re-weighted (Tukey's biweight on the residual, scaled by its median
   absolute deviation), so that pixels near the mask's edge that see the background, a glint
-  or a passing object drop out.
+  or a passing object drop out. The scale is never below the spread the frames' own rounding
+  to whole grey levels leaves in the residual (:func:`rounding_spread`): on a clean, faint
+  texture most pixels of a frame moved a few tenths of a pixel round to the reference's
+  values, their residuals' median deviation is nearly 0, and without that floor the pixels
+  that did change (the ones that carry the motion) were cut as outliers: a noise-free texture
+  of 0.6-1.7 grey levels per pixel shifted 0.3 px read 0.000 px.
 * Pre-smoothing (``presmooth_px``, on a lossy stream): both frames are smoothed by a small
   Gaussian before the fit. A codec rings about a sharp edge and rebuilds each transform block's
   finest detail its own way; the fit, whose weight lies where the gradient is steepest, reads
@@ -202,6 +207,7 @@ class RegionFit:
         ref = reference[r0:r1, c0:c1].astype(np.float64)
         local_rows, local_cols = rows - r0, cols - c0
         fitted = self._smoothed(ref)
+        self.rounding_spread = rounding_spread(reference[r0:r1, c0:c1], self.presmooth_px)
         fx = ndimage.correlate1d(fitted, _DERIVATIVE, axis=1, mode="nearest")[local_rows, local_cols]
         fy = ndimage.correlate1d(fitted, _DERIVATIVE, axis=0, mode="nearest")[local_rows, local_cols]
         self._dx = (cols - self.x0) / self.scale
@@ -419,7 +425,7 @@ class RegionFit:
             previous = weights[inside] if iteration > 1 else None
             error, weights = np.zeros(inside.size), np.zeros(inside.size)
             error[inside] = part
-            weights[inside] = _tukey(part, previous)
+            weights[inside] = _tukey(part, previous, self.rounding_spread)
             weighted = jacobian * weights[:, None]
             hessian = weighted.T @ jacobian
             damped = hessian + DAMPING * np.trace(hessian) / free.size * np.eye(free.size)
@@ -575,11 +581,38 @@ def _inside(window: tuple[int, int, int, int], xs: np.ndarray, ys: np.ndarray,
                 and (r0 == 0 or ys.min() >= r0 + pad) and (r1 == height or ys.max() <= r1 - 1 - pad))
 
 
-def _tukey(error: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+def rounding_spread(image: np.ndarray, presmooth_px: float = 0.0) -> float:
+    """The standard deviation (grey levels) that rounding ``image`` and a frame like it to
+    their grey-level step leaves in their difference, after both are smoothed by a Gaussian of
+    ``presmooth_px``: ``step / sqrt(6)`` (two independent uniform rounding errors) times the
+    smoothing's noise gain. The step: 1 for integer frames (8-bit video), else the smallest
+    spacing of ``image``'s distinct values (a 16-bit camera's brought to the 8-bit scale by a
+    gain: that gain); 0 where the values are not on a grid (float frames made by a program)."""
+    if np.issubdtype(image.dtype, np.integer):
+        step = 1.0
+    else:
+        values = np.unique(np.asarray(image, np.float64))
+        gaps = np.diff(values)
+        step = float(gaps.min()) if gaps.size else 0.0
+        # On a grid only where every gap is a whole number of the smallest one.
+        if not (step > 0 and np.allclose(gaps / step, np.rint(gaps / step), atol=1e-3)):
+            return 0.0
+    gain = 1.0
+    if presmooth_px > 0:
+        radius = int(4.0 * presmooth_px + 0.5)  # ndimage.gaussian_filter's truncation at 4 sigma
+        x = np.arange(-radius, radius + 1, dtype=np.float64)
+        kernel = np.exp(-0.5 * (x / presmooth_px) ** 2)
+        kernel /= kernel.sum()
+        gain = float(np.sum(kernel ** 2))  # per axis sqrt(sum k^2); the 2-D filter their product
+    return step / np.sqrt(6.0) * gain
+
+
+def _tukey(error: np.ndarray, previous: np.ndarray | None, floor: float = 0.0) -> np.ndarray:
     """Tukey's biweights of the residuals, scaled by their median absolute deviation (of the
-    pixels kept so far)."""
+    pixels kept so far), no less than ``floor`` (grey levels: see :func:`rounding_spread`)."""
     base = error if previous is None else error[previous > 0]
-    scale = 1.4826 * float(np.median(np.abs(base - np.median(base)))) if base.size else 0.0
+    scale = MAD_TO_SIGMA * float(np.median(np.abs(base - np.median(base)))) if base.size else 0.0
+    scale = max(scale, floor)
     if not scale > 0:
         return np.ones_like(error)
     z = error / (TUKEY_C * scale)
