@@ -153,7 +153,7 @@ def codec_floor(reference: np.ndarray, rows: np.ndarray, cols: np.ndarray, crf: 
         return failed
     # The decoded first copy is the reference, as a decoded frame is in a measurement.
     fit = RegionFit(decoded[0].astype(np.float64), rows[inside] - r0, cols[inside] - c0, bias_correction=False,
-                    presmooth_px=presmooth_px)
+                    presmooth_px=presmooth_px, rounding_floor=False)
     errors = []
     for frame, (dx, dy) in zip(decoded[1:], shifts[1:], strict=True):
         # Started at the known shift: the floor is the error at the criterion's minimum, not the

@@ -520,7 +520,8 @@ class _Region:
         height, width = reference.shape
         edges = MemberEdges.from_reference(reference, mask) if member else None
         presmooth = _presmooth(codec_crf)
-        fit = (RegionFit(reference, rows, cols, bias_correction=bias_correction, presmooth_px=presmooth)
+        fit = (RegionFit(reference, rows, cols, bias_correction=bias_correction, presmooth_px=presmooth,
+                         rounding_floor=codec_crf is None)
                if texture and rows.size >= 8 else None)
         if fit is not None and not fit.textured:
             fit = None
@@ -533,7 +534,7 @@ class _Region:
         lossy = fit is not None and codec_crf is not None
         along_fit = None if fit is None or edges is None else RegionFit(
             reference, rows, cols, bias_correction=bias_correction, max_points=ALONG_POINTS,
-            tolerance_px=ALONG_TOLERANCE_PX)
+            tolerance_px=ALONG_TOLERANCE_PX, rounding_floor=codec_crf is None)
         strength = (0.0, 0.0) if fit is None else fit.gradient_rms_of(_clear_of(edges, fit.rows, fit.cols))
         return cls(label, edges, fit, rows, cols, prior_rows, prior_cols,
                    float(np.median(reference[mask])) or 1.0, reference=reference if lossy else None,
@@ -984,7 +985,8 @@ def _background_texture(reference: np.ndarray, read: np.ndarray | None, *,
         return None
     # (The sub-pixel bias correction, on lossless frames, resamples the points' bounding box
     # once: for points spread around a member, most of the frame.)
-    fit = RegionFit(reference, rows, cols, bias_correction=bias_correction, presmooth_px=_presmooth(codec_crf))
+    fit = RegionFit(reference, rows, cols, bias_correction=bias_correction, presmooth_px=_presmooth(codec_crf),
+                    rounding_floor=codec_crf is None)
     if not fit.textured or min(fit.gradient_rms) < MIN_TEXTURE_GRADIENT:
         return None
     return fit

@@ -16,12 +16,17 @@ criterion: gain and offset fall out).
   B-spline by far less) and composes the inverse of the increment into the warp.
 * Robustness: iteratively re-weighted (Tukey's biweight on the residual, scaled by its median
   absolute deviation), so that pixels near the mask's edge that see the background, a glint
-  or a passing object drop out. The scale is never below the spread the frames' own rounding
+  or a passing object drop out. On frames as a camera recorded them (lossless:
+  ``rounding_floor``) the scale is never below the spread the frames' own rounding
   to whole grey levels leaves in the residual (:func:`rounding_spread`): on a clean, faint
   texture most pixels of a frame moved a few tenths of a pixel round to the reference's
   values, their residuals' median deviation is nearly 0, and without that floor the pixels
   that did change (the ones that carry the motion) were cut as outliers: a noise-free texture
-  of 0.6-1.7 grey levels per pixel shifted 0.3 px read 0.000 px.
+  of 0.6-1.7 grey levels per pixel shifted 0.3 px read 0.000 px. Not on a lossy stream: there
+  the residual is the codec's, not the rounding's (the codec's copies are left out by
+  :func:`~flow.methods.deepflow.codecfloor.codec_copies`), and the floor moved the readings of
+  a paint's fit along its member enough to change which model a hazard-taped girder's chains
+  took (0.055 -> 0.092 px RMS).
 * Pre-smoothing (``presmooth_px``, on a lossy stream): both frames are smoothed by a small
   Gaussian before the fit. A codec rings about a sharp edge and rebuilds each transform block's
   finest detail its own way; the fit, whose weight lies where the gradient is steepest, reads
@@ -176,6 +181,9 @@ class RegionFit:
         off every reading. Right where the frames are what a camera records (raw, lossless);
         wrong where a lossy codec rebuilt them with its own interpolation (on an H.264 girder
         moving 0.3 px the correction read 3 % shorter): off there.
+    rounding_floor : bool
+        Keep the robust scale of the fit's residual at least :func:`rounding_spread` (frames
+        as a camera recorded them); off for a lossy codec's (see the module's docstring).
     presmooth_px : float
         The standard deviation (px) of the Gaussian both frames are smoothed with before the
         fit (0: none; see the module's docstring). The texture's strength
@@ -184,7 +192,8 @@ class RegionFit:
 
     def __init__(self, reference: np.ndarray, rows: np.ndarray, cols: np.ndarray, *,
                  bias_correction: bool = True, max_points: int = MAX_POINTS,
-                 tolerance_px: float = TOLERANCE_PX, presmooth_px: float = 0.0) -> None:
+                 tolerance_px: float = TOLERANCE_PX, presmooth_px: float = 0.0,
+                 rounding_floor: bool = True) -> None:
         if not (np.isfinite(presmooth_px) and presmooth_px >= 0):
             raise ValueError(f"presmooth_px must be a number >= 0, got {presmooth_px!r}")
         rows = np.asarray(rows, np.intp)
@@ -207,7 +216,7 @@ class RegionFit:
         ref = reference[r0:r1, c0:c1].astype(np.float64)
         local_rows, local_cols = rows - r0, cols - c0
         fitted = self._smoothed(ref)
-        self.rounding_spread = rounding_spread(reference[r0:r1, c0:c1], self.presmooth_px)
+        self.rounding_spread = rounding_spread(reference[r0:r1, c0:c1], self.presmooth_px) if rounding_floor else 0.0
         fx = ndimage.correlate1d(fitted, _DERIVATIVE, axis=1, mode="nearest")[local_rows, local_cols]
         fy = ndimage.correlate1d(fitted, _DERIVATIVE, axis=0, mode="nearest")[local_rows, local_cols]
         self._dx = (cols - self.x0) / self.scale
