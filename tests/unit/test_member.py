@@ -268,3 +268,21 @@ def test_a_member_whose_pixels_look_like_its_wall_is_grown_to_its_outline_only(s
     clip = make_clip(seed=2, frames=2)
     grown = _grow(clip.frames[0].astype(np.float32), clip.mask, MemberParams())
     assert not _beyond_steps(clip.frames[0].astype(np.float32), clip.mask, grown, MemberParams()).any()
+
+
+def test_a_texture_filling_the_view_has_no_outline_where_the_grow_stopped_at_its_reach():
+    """The support grows through pixels that look like the mask's until grow_px stops it: there
+    the texture's random steps are no outline (31 of them were taken on a 1.5 grey level per
+    pixel texture before 2026-12-06); a member's edge inside the reach keeps its profiles."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(4)
+    texture = ndimage.gaussian_filter(rng.standard_normal((160, 208)), 1.0)
+    view = np.clip(np.rint(140 + 3 * texture / texture.std()), 0, 255).astype(np.uint8)
+    mask = np.zeros(view.shape, bool)
+    mask[40:120, 40:168] = True
+    assert MemberEdges.from_reference(view, mask).n_profiles == 0
+    panel = view.copy()
+    panel[:20], panel[140:], panel[:, :20], panel[:, 188:] = 60, 60, 60, 60  # its edges 20 px out
+    edges = MemberEdges.from_reference(panel, mask)
+    assert edges.n_profiles >= 4 * 100

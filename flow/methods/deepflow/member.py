@@ -217,8 +217,7 @@ def _grow(reference: np.ndarray, mask: np.ndarray, params: MemberParams) -> np.n
     typical = float(np.median(gradient[mask]))
     like = (np.abs(reference - centre) <= max(params.like_k * spread, params.like_floor)) & (
         gradient <= params.like_k * max(typical, 0.5))
-    reach = cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(
-        cv2.MORPH_ELLIPSE, (2 * params.grow_px + 1, 2 * params.grow_px + 1))) > 0
+    reach = _reach(mask, params)
     allowed = (like & reach) | mask
     support = _connected_to(mask, allowed)
     beyond = _beyond_steps(reference, mask, support, params)
@@ -227,6 +226,12 @@ def _grow(reference: np.ndarray, mask: np.ndarray, params: MemberParams) -> np.n
     # Close pinholes of noise inside the member (a pixel of the paint that failed the test).
     closed = cv2.morphologyEx(support.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
     return (support | closed) & (reach | mask)
+
+
+def _reach(mask: np.ndarray, params: MemberParams) -> np.ndarray:
+    """The pixels within ``grow_px`` of the mask: as far as :func:`_grow` may grow it."""
+    return cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(
+        cv2.MORPH_ELLIPSE, (2 * params.grow_px + 1, 2 * params.grow_px + 1))) > 0
 
 
 def _connected_to(mask: np.ndarray, allowed: np.ndarray) -> np.ndarray:
@@ -721,7 +726,7 @@ class MemberEdges:
         order = np.argsort(evals)[::-1]
         self.axes = axes[:, order]
         self.half = np.maximum(2.0 * np.sqrt(np.maximum(evals[order], 0.0)), 1.0)
-        self._profiles(ref)  # (which may turn the axes to the outlines: _orient_by_outline)
+        self._profiles(ref, _reach(mask, self.params))  # (which may turn the axes: _orient_by_outline)
         self.poi_field = _Field(pts[:, 0], pts[:, 1], self.centre, self.axes, self.half)
         return self
 
@@ -746,7 +751,13 @@ class MemberEdges:
             self.axes = self.axes[:, ::-1].copy()
             self.half = self.half[::-1].copy()
 
-    def _profiles(self, ref: np.ndarray) -> None:
+    def _profiles(self, ref: np.ndarray, reach: np.ndarray) -> None:
+        """The edge profiles across the support's boundary: those where the support stops at
+        a step of the reference (the member's outline), not where the grow stopped at its
+        ``reach`` (the pixels within grow_px of the mask) through pixels that all looked like
+        the member (a texture that fills the view has no outline there: fitted as one, its
+        random steps of 6 grey levels read a clean panel moving 0.3 px 0.14 px RMS, slope 0.43,
+        where the dense flow read 0.04)."""
         support = self.support
         smooth = cv2.GaussianBlur(support.astype(np.float32), (0, 0), 1.5)
         nx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)
@@ -787,7 +798,11 @@ class MemberEdges:
         # The outline in the reference under each blur model (see fit for the choice).
         outlines = [self._fine(ref, guess, None, blur) for blur in BLURS]
         sharp = outlines[0]
-        keep = np.isfinite(sharp.edge) & (np.abs(sharp.contrast) >= self.params.min_contrast)
+        beyond = member_px + self.side
+        beyond_r = np.clip(np.where(self.vertical, beyond, self.line), 0, height - 1)
+        beyond_c = np.clip(np.where(self.vertical, self.line, beyond), 0, width - 1)
+        stopped = reach[beyond_r, beyond_c]  # the next pixel out was within reach: the scene stopped it
+        keep = np.isfinite(sharp.edge) & (np.abs(sharp.contrast) >= self.params.min_contrast) & stopped
         boundary = np.where(keep, sharp.edge, 0.0)
         self.px = np.where(self.vertical, self.line, boundary).astype(np.float64)
         self.py = np.where(self.vertical, boundary, self.line).astype(np.float64)
