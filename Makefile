@@ -10,13 +10,17 @@ export PATH := $(CURDIR)/$(BIN):$(PATH)
 export PYOPENGL_PLATFORM ?= egl
 export MPLBACKEND ?= Agg
 
-.PHONY: all test lint bench clean-results browser lock
+.PHONY: all test test-slow lint bench clean-results browser lock
 
 all: $(STAMP)
 	$(BIN)/snakemake --cores $(CORES) --rerun-incomplete all
 
 test: $(STAMP) browser
 	$(BIN)/python -m pytest
+
+# The tests marked slow (left out of `make test` to keep it under 15 minutes on 2 cores).
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -m slow
 
 # The browser tests of `refflow gui` drive Debian's chromium through its chromium-driver:
 # installed here where the machine allows it (root and apt-get); elsewhere they skip and say why.

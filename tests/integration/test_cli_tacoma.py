@@ -113,6 +113,10 @@ def test_tacoma_deck_with_dis_keeps_every_reading_and_its_swing(tmp_path, capsys
     assert strict["typical_sigma_px"] > 0.1 and not strict["unresolved"] and strict["frames_valid"] == FRAMES
 
 
+# The script's whole run (the clip measured whole and in four regions, figures, merges) takes
+# about 1.5 minutes of the default suite's 15 on 2 cores: marked slow (`make test-slow`); the
+# readings it rests on are tested above.
+@pytest.mark.slow
 @needs_clip
 def test_tacoma_script_writes_the_figures(tmp_path) -> None:
     env = {**os.environ, "TACOMA_CLIP": str(CLIP)}
