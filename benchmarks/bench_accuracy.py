@@ -87,7 +87,7 @@ def cramer_rao(folder: Path, meta: dict, mask: np.ndarray) -> tuple[float, float
     """(interior, with outline) lower bounds (px) on the error of a translation along the axis."""
     frames = frames_of(folder / meta.get("video", "clip.mp4"))
     reference = frames[0]
-    support = _grow(reference.astype(np.float32), mask, MemberParams())
+    support, _, _ = _grow(reference.astype(np.float32), mask, MemberParams())
     # Static background, well clear of the member: its frame-to-frame change is the noise.
     clear = ~(cv2.dilate(support.astype(np.uint8), np.ones((41, 41), np.uint8)) > 0)
     diffs = [(b - a)[clear] for a, b in zip(frames[:-1], frames[1:], strict=False)]

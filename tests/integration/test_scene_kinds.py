@@ -196,6 +196,15 @@ def _scene(kind: str, seed: int, noise: float = 1.0) -> Clip:
     return Clip(np.array(frames), mask, np.array(truth), axis, FPS, np.zeros(FRAMES, bool))
 
 
+def _png_folder(tmp_path: Path, clip: Clip) -> Path:
+    """The clip's frames as a folder of PNG images (lossless)."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for index, frame in enumerate(clip.frames):
+        cv2.imwrite(str(frames / f"{index:04d}.png"), frame)
+    return frames
+
+
 def _run(tmp_path: Path, clip: Clip, video: Path, name: str, *extra: str) -> tuple[float, float, float, dict]:
     mask = tmp_path / "mask.png"
     cv2.imwrite(str(mask), clip.mask.astype(np.uint8) * 255)
@@ -312,10 +321,7 @@ def test_a_tiny_motion_the_codec_mostly_copied_from_the_reference_is_read(tmp_pa
 # (DIS 0.026 / 0.91) before 2026-12-06. The scale is now never below the rounding's own spread.
 def test_a_clean_faint_textures_motion_of_a_few_tenths_of_a_pixel_is_read_to_scale(tmp_path) -> None:
     clip = _scene("tiny-faint", seed=1, noise=0.0)
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    for index, frame in enumerate(clip.frames):
-        cv2.imwrite(str(frames / f"{index:04d}.png"), frame)
+    frames = _png_folder(tmp_path, clip)
     ours = _run(tmp_path, clip, frames, "default", "--fps", str(FPS))
     base = _run(tmp_path, clip, frames, "dis", "--fps", str(FPS), "--method", "dis")
     print(f"tiny-faint, lossless: default RMSE {ours[0]:.4f} px slope {ours[1]:.4f}; dis {base[0]:.4f} / {base[1]:.4f}")
@@ -332,10 +338,7 @@ def test_a_clean_faint_textures_motion_of_a_few_tenths_of_a_pixel_is_read_to_sca
 @pytest.mark.parametrize("noise", [0.0, 1.0])
 def test_a_texture_filling_the_view_is_not_read_from_an_outline_it_does_not_have(tmp_path, noise) -> None:
     clip = _scene("tiny-faint-view", seed=1, noise=noise)
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    for index, frame in enumerate(clip.frames):
-        cv2.imwrite(str(frames / f"{index:04d}.png"), frame)
+    frames = _png_folder(tmp_path, clip)
     ours = _run(tmp_path, clip, frames, "default", "--fps", str(FPS))
     base = _run(tmp_path, clip, frames, "dis", "--fps", str(FPS), "--method", "dis")
     print(f"tiny-faint-view, noise {noise}: default RMSE {ours[0]:.4f} px slope {ours[1]:.4f}; "

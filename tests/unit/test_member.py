@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flow.methods.deepflow.member import BLURS, MemberEdges
+from flow.methods.deepflow.member import BLURS, MemberEdges, MemberParams
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _lowtex_clip import make_clip  # noqa: E402
@@ -257,7 +257,7 @@ def test_a_member_whose_pixels_look_like_its_wall_is_grown_to_its_outline_only(s
     # (bench_scene_kinds' stripes: 0.226 px RMS, DIS 0.161; now 0.056).
     from flow.methods.deepflow.member import MemberParams, _beyond_steps, _grow
     image, mask = _striped_girder(seed)
-    support = _grow(image, mask, MemberParams())
+    support, _, _ = _grow(image, mask, MemberParams())
     rows = np.nonzero(support[:, 30:210].any(axis=1))[0]
     assert rows.min() >= 39 and rows.max() <= 70, (rows.min(), rows.max())
     assert support[40:70, 30:210].all()  # the whole girder across
@@ -266,23 +266,34 @@ def test_a_member_whose_pixels_look_like_its_wall_is_grown_to_its_outline_only(s
     # A painted bar whose support stops at its outline is not touched (the bench's painted
     # bars read byte for byte what they read before).
     clip = make_clip(seed=2, frames=2)
-    grown = _grow(clip.frames[0].astype(np.float32), clip.mask, MemberParams())
+    grown, _, _ = _grow(clip.frames[0].astype(np.float32), clip.mask, MemberParams())
     assert not _beyond_steps(clip.frames[0].astype(np.float32), clip.mask, grown, MemberParams()).any()
 
 
-def test_a_texture_filling_the_view_has_no_outline_where_the_grow_stopped_at_its_reach():
+@pytest.mark.parametrize(("edge_px", "at_least"), [(20, 400), (24, 400), (25, 400), (26, 150)])
+def test_a_texture_filling_the_view_has_no_outline_where_the_grow_stopped_at_its_reach(edge_px, at_least):
     """The support grows through pixels that look like the mask's until grow_px stops it: there
-    the texture's random steps are no outline (31 of them were taken on a 1.5 grey level per
-    pixel texture before 2026-12-06); a member's edge inside the reach keeps its profiles."""
+    the texture's random steps are no outline (31-54 of them were taken on a texture of 1.5
+    grey levels per pixel before 2026-12-06). A member's edge up to the outline search's reach
+    past grow_px keeps its profiles (a first version dropped those of an edge 24-27 px out; the
+    search finds fewer of them the further out: 452, 238, 186 at 25, 26, 27 px before the check,
+    430, 209, 143 with it)."""
     from scipy import ndimage
 
     rng = np.random.default_rng(4)
-    texture = ndimage.gaussian_filter(rng.standard_normal((160, 208)), 1.0)
+    texture = ndimage.gaussian_filter(rng.standard_normal((200, 260)), 1.0)
     view = np.clip(np.rint(140 + 3 * texture / texture.std()), 0, 255).astype(np.uint8)
     mask = np.zeros(view.shape, bool)
-    mask[40:120, 40:168] = True
+    mask[60:140, 60:200] = True
     assert MemberEdges.from_reference(view, mask).n_profiles == 0
-    panel = view.copy()
-    panel[:20], panel[140:], panel[:, :20], panel[:, 188:] = 60, 60, 60, 60  # its edges 20 px out
+    near = np.zeros(view.shape, bool)  # its grow runs on to the frame's edge: no outline there either
+    near[26:106, 60:200] = True
+    assert MemberEdges.from_reference(view, near).n_profiles < MemberParams().min_profiles  # (none read)
+    panel = np.full_like(view, 60)  # a dark wall, the panel's edges edge_px outside the mask
+    panel[60 - edge_px:140 + edge_px, 60 - edge_px:200 + edge_px] = view[60 - edge_px:140 + edge_px,
+                                                                         60 - edge_px:200 + edge_px]
     edges = MemberEdges.from_reference(panel, mask)
-    assert edges.n_profiles >= 4 * 100
+    assert edges.n_profiles >= at_least
+    across = np.where(edges.vertical, edges.py - np.where(edges.side > 0, 140, 60),
+                      edges.px - np.where(edges.side > 0, 200, 60))
+    assert np.all(np.abs(np.abs(across) - edge_px) < 1.0)  # every profile on the panel's edge

@@ -201,8 +201,12 @@ def context_px(params: MemberParams | None = None) -> int:
     return 3 * (params or MemberParams()).grow_px
 
 
-def _grow(reference: np.ndarray, mask: np.ndarray, params: MemberParams) -> np.ndarray:
-    """The mask grown through member-like pixels, at most ``grow_px`` beyond it."""
+def _grow(reference: np.ndarray, mask: np.ndarray,
+          params: MemberParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mask grown through member-like pixels, at most ``grow_px`` beyond it; the pixels
+    within that reach; and the same grow let go SEARCH + 1 px further (without the cut of
+    :func:`_beyond_steps`): where that one goes on past an edge of the first at its reach, the
+    first was stopped by its reach, not by the scene (see :meth:`MemberEdges._profiles`)."""
     values = reference[mask]
     centre = float(np.median(values))
     spread = MAD_TO_SIGMA * float(np.median(np.abs(values - centre)))
@@ -217,21 +221,22 @@ def _grow(reference: np.ndarray, mask: np.ndarray, params: MemberParams) -> np.n
     typical = float(np.median(gradient[mask]))
     like = (np.abs(reference - centre) <= max(params.like_k * spread, params.like_floor)) & (
         gradient <= params.like_k * max(typical, 0.5))
-    reach = _reach(mask, params)
+    reach = _reach(mask, params.grow_px)
     allowed = (like & reach) | mask
     support = _connected_to(mask, allowed)
+    further = _connected_to(mask, (like & _reach(mask, params.grow_px + SEARCH + 1)) | mask)
     beyond = _beyond_steps(reference, mask, support, params)
     if beyond.any():
         support = _connected_to(mask, allowed & ~beyond)
     # Close pinholes of noise inside the member (a pixel of the paint that failed the test).
     closed = cv2.morphologyEx(support.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
-    return (support | closed) & (reach | mask)
+    return (support | closed) & (reach | mask), reach, further
 
 
-def _reach(mask: np.ndarray, params: MemberParams) -> np.ndarray:
-    """The pixels within ``grow_px`` of the mask: as far as :func:`_grow` may grow it."""
+def _reach(mask: np.ndarray, grow_px: int) -> np.ndarray:
+    """The pixels within ``grow_px`` of the mask."""
     return cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(
-        cv2.MORPH_ELLIPSE, (2 * params.grow_px + 1, 2 * params.grow_px + 1))) > 0
+        cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1))) > 0
 
 
 def _connected_to(mask: np.ndarray, allowed: np.ndarray) -> np.ndarray:
@@ -706,7 +711,7 @@ class MemberEdges:
             raise ValueError("the mask holds fewer than 3 pixels")
         self.shape = ref.shape
         self._ref_image = ref
-        self.support = _grow(ref, mask, self.params)
+        self.support, reach, further = _grow(ref, mask, self.params)
         # Variance of a member pixel about its neighbours (paint texture and noise).
         inner = cv2.erode(self.support.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         diffs = np.concatenate([(ref[:, 1:] - ref[:, :-1])[inner[:, 1:] & inner[:, :-1]],
@@ -726,7 +731,7 @@ class MemberEdges:
         order = np.argsort(evals)[::-1]
         self.axes = axes[:, order]
         self.half = np.maximum(2.0 * np.sqrt(np.maximum(evals[order], 0.0)), 1.0)
-        self._profiles(ref, _reach(mask, self.params))  # (which may turn the axes: _orient_by_outline)
+        self._profiles(ref, reach, further)  # (which may turn the axes: _orient_by_outline)
         self.poi_field = _Field(pts[:, 0], pts[:, 1], self.centre, self.axes, self.half)
         return self
 
@@ -751,13 +756,15 @@ class MemberEdges:
             self.axes = self.axes[:, ::-1].copy()
             self.half = self.half[::-1].copy()
 
-    def _profiles(self, ref: np.ndarray, reach: np.ndarray) -> None:
-        """The edge profiles across the support's boundary: those where the support stops at
-        a step of the reference (the member's outline), not where the grow stopped at its
-        ``reach`` (the pixels within grow_px of the mask) through pixels that all looked like
-        the member (a texture that fills the view has no outline there: fitted as one, its
-        random steps of 6 grey levels read a clean panel moving 0.3 px 0.14 px RMS, slope 0.43,
-        where the dense flow read 0.04)."""
+    def _profiles(self, ref: np.ndarray, reach: np.ndarray, further: np.ndarray) -> None:
+        """The edge profiles across the support's boundary: those where the scene stopped the
+        support (the pixel beyond it is within the grow's ``reach``: the member's outline, or
+        the cut at a step of :func:`_beyond_steps`) or would stop it within the outline search's
+        SEARCH px past the reach (``further``, the grow let go SEARCH + 1 px further, does not
+        hold the pixel SEARCH + 1 px beyond), not where only grow_px stopped it, its pixels
+        looking like the member's on past it. A texture that fills the view has no outline there:
+        taken for one, its random steps of 6 grey levels (31 profiles) read a faint texture
+        moving 0.3 px 0.186 px RMS, slope 0.41, where DIS read 0.016 px."""
         support = self.support
         smooth = cv2.GaussianBlur(support.astype(np.float32), (0, 0), 1.5)
         nx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)
@@ -798,10 +805,14 @@ class MemberEdges:
         # The outline in the reference under each blur model (see fit for the choice).
         outlines = [self._fine(ref, guess, None, blur) for blur in BLURS]
         sharp = outlines[0]
-        beyond = member_px + self.side
-        beyond_r = np.clip(np.where(self.vertical, beyond, self.line), 0, height - 1)
-        beyond_c = np.clip(np.where(self.vertical, self.line, beyond), 0, width - 1)
-        stopped = reach[beyond_r, beyond_c]  # the next pixel out was within reach: the scene stopped it
+        stopped = reach[np.where(self.vertical, member_px + self.side, self.line),
+                        np.where(self.vertical, self.line, member_px + self.side)]  # (both in the frame)
+        # (Where the frame ends before that pixel, its last one: a grow that runs on to the
+        # frame's edge met no outline either.)
+        past = member_px + (SEARCH + 1) * self.side
+        past_r = np.clip(np.where(self.vertical, past, self.line), 0, height - 1)
+        past_c = np.clip(np.where(self.vertical, self.line, past), 0, width - 1)
+        stopped |= ~further[past_r, past_c]
         keep = np.isfinite(sharp.edge) & (np.abs(sharp.contrast) >= self.params.min_contrast) & stopped
         boundary = np.where(keep, sharp.edge, 0.0)
         self.px = np.where(self.vertical, self.line, boundary).astype(np.float64)

@@ -590,22 +590,30 @@ def _inside(window: tuple[int, int, int, int], xs: np.ndarray, ys: np.ndarray,
                 and (r0 == 0 or ys.min() >= r0 + pad) and (r1 == height or ys.max() <= r1 - 1 - pad))
 
 
+# At most this many of a frame's values are looked at for their grid (see rounding_spread).
+GRID_SAMPLE = 200_000
+
+
 def rounding_spread(image: np.ndarray, presmooth_px: float = 0.0) -> float:
     """The standard deviation (grey levels) that rounding ``image`` and a frame like it to
     their grey-level step leaves in their difference, after both are smoothed by a Gaussian of
     ``presmooth_px``: ``step / sqrt(6)`` (two independent uniform rounding errors) times the
-    smoothing's noise gain. The step: 1 for integer frames (8-bit video), else the smallest
-    spacing of ``image``'s distinct values (a 16-bit camera's brought to the 8-bit scale by a
-    gain: that gain); 0 where the values are not on a grid (float frames made by a program)."""
-    if np.issubdtype(image.dtype, np.integer):
+    smoothing's noise gain. The step: 1 for frames of whole grey levels (8-bit video), else the
+    smallest spacing of ``image``'s distinct values (a 10-16-bit camera's brought to the 8-bit
+    scale by a gain: that gain, found on a regular sample of GRID_SAMPLE of them), never more than 1 (a frame of few levels is no coarser camera); 0 where the values
+    are not on a grid (float frames made by a program)."""
+    image = np.asarray(image)
+    if np.issubdtype(image.dtype, np.integer) or np.array_equal(image, np.rint(image)):
         step = 1.0
     else:
-        values = np.unique(np.asarray(image, np.float64))
+        values = np.unique(image.ravel()[:: max(1, image.size // GRID_SAMPLE)].astype(np.float64))
         gaps = np.diff(values)
         step = float(gaps.min()) if gaps.size else 0.0
-        # On a grid only where every gap is a whole number of the smallest one.
-        if not (step > 0 and np.allclose(gaps / step, np.rint(gaps / step), atol=1e-3)):
+        # On a grid only where every gap is a whole number of the smallest one (to float32's
+        # rounding of the gain's multiples).
+        if not (step > 0 and np.allclose(gaps / step, np.rint(gaps / step), atol=0.05)):
             return 0.0
+        step = min(step, 1.0)
     gain = 1.0
     if presmooth_px > 0:
         radius = int(4.0 * presmooth_px + 0.5)  # ndimage.gaussian_filter's truncation at 4 sigma
