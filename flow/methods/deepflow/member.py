@@ -803,24 +803,21 @@ class MemberEdges:
         member_px = np.concatenate(pos).astype(np.intp)  # the support's last pixel along the line
         # Sign of the member-to-background step, from that pixel and the one two beyond it.
         height, width = ref.shape
-        out = member_px + 2 * self.side
-        out_r = np.clip(np.where(self.vertical, out, self.line), 0, height - 1)
-        out_c = np.clip(np.where(self.vertical, self.line, out), 0, width - 1)
-        in_r = np.where(self.vertical, member_px, self.line)
-        in_c = np.where(self.vertical, self.line, member_px)
-        self.polarity = np.where(ref[in_r, in_c] >= ref[out_r, out_c], 1.0, -1.0)
+
+        def at(offset: int) -> tuple[np.ndarray, np.ndarray]:
+            """(row, column) of the pixel ``offset`` px beyond the support along each profile's
+            line, towards the background (the frame's last where the frame ends before it)."""
+            along = member_px + offset * self.side
+            return (np.clip(np.where(self.vertical, along, self.line), 0, height - 1),
+                    np.clip(np.where(self.vertical, self.line, along), 0, width - 1))
+
+        self.polarity = np.where(ref[at(0)] >= ref[at(2)], 1.0, -1.0)
         guess = self._coarse(ref, member_px + 0.5 * self.side, None)
         # The outline in the reference under each blur model (see fit for the choice).
         outlines = [self._fine(ref, guess, None, blur) for blur in BLURS]
         sharp = outlines[0]
-        stopped = reach[np.where(self.vertical, member_px + self.side, self.line),
-                        np.where(self.vertical, self.line, member_px + self.side)]  # (both in the frame)
-        # (Where the frame ends before that pixel, its last one: a grow that runs on to the
-        # frame's edge met no outline either.)
-        past = member_px + (SEARCH + 1) * self.side
-        past_r = np.clip(np.where(self.vertical, past, self.line), 0, height - 1)
-        past_c = np.clip(np.where(self.vertical, self.line, past), 0, width - 1)
-        stopped |= ~further[past_r, past_c]
+        # (A grow that runs on to the frame's edge met no outline either: see at.)
+        stopped = reach[at(1)] | ~further[at(SEARCH + 1)]
         keep = np.isfinite(sharp.edge) & (np.abs(sharp.contrast) >= self.params.min_contrast)
         if keep.any() and np.mean(stopped[keep]) < SCENE_STOPPED:
             keep &= stopped  # (a member's outline keeps the few the grow overran: see SCENE_STOPPED)

@@ -600,8 +600,9 @@ def rounding_spread(image: np.ndarray, presmooth_px: float = 0.0) -> float:
     ``presmooth_px``: ``step / sqrt(6)`` (two independent uniform rounding errors) times the
     smoothing's noise gain. The step: 1 for frames of whole grey levels (8-bit video), else the
     smallest spacing of ``image``'s distinct values (a 10-16-bit camera's brought to the 8-bit
-    scale by a gain: that gain, found on a regular sample of GRID_SAMPLE of them), never more than 1 (a frame of few levels is no coarser camera); 0 where the values
-    are not on a grid (float frames made by a program)."""
+    scale by a gain: that gain, found on a regular sample of GRID_SAMPLE of them), never more
+    than 1 (a frame of few levels is no coarser camera); 0 where the values are not on a grid
+    (float frames made by a program)."""
     image = np.asarray(image)
     if np.issubdtype(image.dtype, np.integer) or np.array_equal(image, np.rint(image)):
         step = 1.0
@@ -615,11 +616,10 @@ def rounding_spread(image: np.ndarray, presmooth_px: float = 0.0) -> float:
             return 0.0
         step = min(step, 1.0)
     gain = 1.0
-    if presmooth_px > 0:
-        radius = int(4.0 * presmooth_px + 0.5)  # ndimage.gaussian_filter's truncation at 4 sigma
-        x = np.arange(-radius, radius + 1, dtype=np.float64)
-        kernel = np.exp(-0.5 * (x / presmooth_px) ** 2)
-        kernel /= kernel.sum()
+    if presmooth_px > 0:  # the kernel of RegionFit._smoothed, from its response to one pixel
+        impulse = np.zeros(2 * int(4.0 * presmooth_px + 0.5) + 1)
+        impulse[impulse.size // 2] = 1.0
+        kernel = ndimage.gaussian_filter1d(impulse, presmooth_px, mode="constant")
         gain = float(np.sum(kernel ** 2))  # per axis sqrt(sum k^2); the 2-D filter their product
     return step / np.sqrt(6.0) * gain
 
