@@ -23,7 +23,7 @@ import numpy as np
 
 from flow import inputs
 from flow.io.errors import InputError
-from flow.io.frames import FrameSource, check_fps
+from flow.io.frames import COPY_WINDOW_PX, HISTORY_SHARE, FrameSource, check_fps
 from flow.measure.reference import check as check_reference
 from flow.methods import registry
 from flow.options import FilterOptions, FramesInfo, InputInfo, MergeOptions, RunInfo, TrackOptions
@@ -152,7 +152,7 @@ def track(options: TrackOptions) -> Outcome:
     read_paths = options.input_paths()
     output_names(options.outputs, read_paths)
     setup = _set_up(options, notes, name, sparse)
-    params, method = _for_source(name, params, method, setup.source)
+    params, method = _for_source(name, params, method, setup.source, notes)
     check_reference(setup.source, options.reference_frame, options.reference_average, setup.labels > 0,
                     setup.undistort)
     field = _field_stream(options, setup, sparse, name)
@@ -204,22 +204,40 @@ def _track_and_write(options: TrackOptions, setup: _Setup, method: Any, name: st
 DEFAULT_CRF = 23.0
 
 
-def _for_source(name: str, params: dict[str, Any], method: Any, source: Any) -> tuple[dict[str, Any], Any]:
+def _for_source(name: str, params: dict[str, Any], method: Any, source: Any,
+                notes: list[str]) -> tuple[dict[str, Any], Any]:
     """A method's parameters that depend on the input, resolved from it where the user left them
-    (``bias_correction``: on for lossless frames only, see :attr:`flow.io.frames.FrameSource.lossless`;
-    ``codec_crf``: a lossy stream's quality as its encoder wrote it, :data:`DEFAULT_CRF` where it did not),
-    and the method built with them; the sidecar records the value taken."""
+    (``bias_correction``: on for lossless frames only, see :attr:`flow.io.frames.FrameSource.lossless`,
+    and not for lossless files of a lossy codec's frames, see :func:`_lossy_history`; ``codec_crf``: a
+    lossy stream's quality as its encoder wrote it, :data:`DEFAULT_CRF` where it did not), and the method
+    built with them; the sidecar records the value taken."""
     declared = {param.name for param in getattr(method, "parameters", ())}
+    given = {key for key, value in params.items() if value is not None}
+    unset = ({"bias_correction", "codec_crf"} & declared) - given
+    lossless = bool(unset) and source.lossless and not _lossy_history(source, notes)
     resolved = {}
-    if "bias_correction" in declared and params.get("bias_correction") is None:
-        resolved["bias_correction"] = source.lossless
-    if "codec_crf" in declared and params.get("codec_crf") is None and not source.lossless:
+    if "bias_correction" in unset:
+        resolved["bias_correction"] = lossless
+    if "codec_crf" in unset and not lossless:
         crf = getattr(source, "codec_crf", None)
         resolved["codec_crf"] = DEFAULT_CRF if crf is None else crf
     if not resolved:
         return params, method
     params = {**params, **resolved}
     return params, build_method(name, params)
+
+
+def _lossy_history(source: Any, notes: list[str]) -> bool:
+    """Whether frames in lossless files show a lossy codec's copied blocks (see
+    :func:`flow.io.frames.copied_share`), noted for the user where they do."""
+    share = source.copied_share()
+    if share <= HISTORY_SHARE:
+        return False
+    _note(notes, f"{source.path.name}: lossless files, but {share:.0%} of a frame's textured {COPY_WINDOW_PX}x"
+                 f"{COPY_WINDOW_PX} px windows are the frame before's bit for bit, as a lossy codec leaves them "
+                 f"(frames exported from a video): read as a lossy stream of unknown quality (codec_crf "
+                 f"{DEFAULT_CRF:g}); pass --param codec_crf=N with the video's quality where known")
+    return True
 
 
 def _method_name(asked: str | None, notes: list[str]) -> str:

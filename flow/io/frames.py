@@ -20,8 +20,28 @@ import numpy as np
 
 from flow.io.errors import InputError
 
-__all__ = ["FPS_RANGE", "FrameSource", "Roi", "as_uint8", "check_fps", "deep_image_gain",
+__all__ = ["FPS_RANGE", "FrameSource", "Roi", "as_uint8", "check_fps", "copied_share", "deep_image_gain",
            "significant_bits", "to_grey"]
+
+# Frames in lossless files can still be a lossy codec's output (a phone video exported to PNG or
+# TIFF images, as many DIC tools want their input). Such a codec leaves what a camera's frames never
+# show: a block it did not need to code (a still background, a structure moving less than the codec
+# codes) is the frame before's, bit for bit, though the scene there has changed since the first
+# frame. A window of COPY_WINDOW_PX x COPY_WINDOW_PX pixels with texture in it (a spread of at least
+# COPY_MIN_RANGE grey levels: not a saturated sky or a black corner) equal to the frame before in
+# every pixel and not to the first is such a copy: sensor noise never leaves one, and a scene
+# without noise (a render) leaves one only where its motion stays below the grey levels' rounding
+# for a frame (its still background is the first frame's too), and is then read as a lossy stream,
+# as well (the tests' scenes without noise: a faint panel 0.018 -> 0.014 px, a girder moving a few
+# tenths of a pixel 0.0006 -> 0.0011, a textured panel and a faint texture filling the view within
+# 0.0001 px), its sigma the wider for the codec's error measured. Measured on the bench's 16 H.264
+# clips exported to PNG, the largest share over the first eight pairs of frames: 7-67 % of the
+# textured windows (CRF 12-30; the whole view moving: one pair of the eight); on the DIC
+# Challenge's images, a Phantom and a Photron camera file: none.
+COPY_WINDOW_PX = 8
+COPY_MIN_RANGE = 2.0
+HISTORY_PAIRS = 8
+HISTORY_SHARE = 0.01
 
 
 @dataclass(frozen=True)
@@ -86,6 +106,30 @@ def significant_bits(image: np.ndarray) -> int:
 # second (beyond the fastest framing cameras, about 10^8). Outside them the number is a typing
 # error, and index / fps may not even be finite (--fps 4e-320 gives time_s = inf).
 FPS_RANGE = (1e-6, 1e10)
+
+
+def copied_share(frames: Iterator[np.ndarray]) -> float:
+    """The largest share, over the pairs of consecutive ``frames`` (grey, one shape) after the
+    first, of a frame's textured windows that are the frame before's bit for bit but not the
+    first frame's (see COPY_WINDOW_PX): above HISTORY_SHARE, the frames have been through a lossy
+    codec. A pair equal in every pixel (a repeated frame) tells nothing and is passed over."""
+    window = np.ones((COPY_WINDOW_PX, COPY_WINDOW_PX), np.uint8)
+
+    def whole(equal: np.ndarray) -> np.ndarray:
+        return cv2.erode(equal.view(np.uint8), window).astype(bool)
+
+    largest, first, before = 0.0, None, None
+    for frame in frames:
+        if first is None:
+            first = frame
+        elif before is not None and not np.array_equal(before, frame):
+            level = frame if frame.dtype in (np.uint8, np.float32) else frame.astype(np.float32)
+            textured = (cv2.dilate(level, window).astype(np.float32) - cv2.erode(level, window)) >= COPY_MIN_RANGE
+            copied = whole(frame == before) & ~whole(frame == first) & textured
+            if textured.any():
+                largest = max(largest, float(np.count_nonzero(copied) / np.count_nonzero(textured)))
+        before = frame
+    return largest
 
 
 def check_fps(fps: float | None, name: str = "--fps") -> None:
@@ -180,6 +224,15 @@ class FrameSource:
         """Whether the frames are what the camera recorded (a lossless codec, lossless image
         files, a camera file); each reader says. False where not known."""
         return False
+
+    def copied_share(self) -> float:
+        """:func:`copied_share` of the first HISTORY_PAIRS pairs of frames: above HISTORY_SHARE,
+        frames that a lossy codec made, whatever files hold them."""
+        frames = self.frames(0, HISTORY_PAIRS + 1)
+        try:
+            return copied_share(frame for _, _, frame in frames)
+        finally:
+            frames.close()
 
     @property
     def codec_crf(self) -> float | None:

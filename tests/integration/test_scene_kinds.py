@@ -22,9 +22,10 @@ from scipy import ndimage
 
 from flow.cli import main
 from flow.methods.deepflow.method import REFUSALS
+from flow.pipeline import DEFAULT_CRF
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "unit"))
-from _lowtex_clip import Clip, encode  # noqa: E402
+from _lowtex_clip import Clip, decode, encode  # noqa: E402
 
 UP = 2
 HEIGHT, WIDTH = 160, 208
@@ -390,3 +391,31 @@ def test_a_faint_bar_at_an_angle_keeps_its_frames_valid(tmp_path) -> None:
     print(f"inclined: default RMSE {rmse:.3f} px slope {slope:.3f} valid {valid:.2f}; dis {base[0]:.3f} / {base[1]:.3f}")
     assert valid >= 0.95
     assert rmse <= max(1.1 * base[0], 0.05) and abs(slope - 1.0) <= 0.06
+
+
+def test_a_videos_frames_exported_to_images_are_read_as_the_video_is(tmp_path) -> None:
+    """Frames a lossy codec made keep its error in lossless files (a video exported to PNG images,
+    as DIC tools want their input): they are read as a lossy stream of unknown quality (the sidecar
+    says so), as well as the video itself, with the codec's error in the sigma (before, read as
+    lossless: 0.14 of the frames within 2 sigma). The scene's own frames in PNG stay lossless."""
+    clip = _scene("panel", seed=3)
+    video = encode(clip, tmp_path / "clip.mp4", crf=18)
+    exported = tmp_path / "exported"
+    exported.mkdir()
+    for index, frame in enumerate(decode(video)):
+        cv2.imwrite(str(exported / f"{index:04d}.png"), frame)
+    from_video = _run(tmp_path, clip, video, "video")
+    from_images = _run(tmp_path, clip, exported, "images", "--fps", str(FPS))
+    sidecar = json.loads((tmp_path / "images.json").read_text())
+    assert (sidecar["parameters"]["codec_crf"], sidecar["parameters"]["bias_correction"]) == (DEFAULT_CRF, False)
+    assert any("read as a lossy stream" in note for note in sidecar["notes"])
+    assert from_images[0] <= 1.1 * from_video[0] + 0.002 and abs(from_images[1] - 1) <= 0.02
+    with (tmp_path / "images.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    error = np.array([float(r["dx_px"]) for r in rows]) - (clip.truth_px - clip.truth_px[0])
+    sigma = np.array([float(r["sigma_dx_px"]) for r in rows])
+    assert np.mean(np.abs(error[1:]) <= 2 * sigma[1:]) >= 0.85
+    assert main(["track", str(_png_folder(tmp_path, clip)), "--fps", str(FPS), "--mask", str(tmp_path / "mask.png"),
+                 "--max-frames", "6", "--out", str(tmp_path / "lossless.csv"), "--no-progress"]) == 0
+    parameters = json.loads((tmp_path / "lossless.json").read_text())["parameters"]
+    assert (parameters["codec_crf"], parameters["bias_correction"]) == (None, True)

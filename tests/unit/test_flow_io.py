@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from flow.io.errors import InputError
-from flow.io.frames import Roi, as_uint8, deep_image_gain, significant_bits
+from flow.io.frames import (
+    HISTORY_SHARE,
+    Roi,
+    as_uint8,
+    copied_share,
+    deep_image_gain,
+    significant_bits,
+)
 from flow.io.source import open_source
 from flow.measure.poi import load_mask, poi_coordinates, polygon_mask, rect_mask
 
@@ -370,7 +377,64 @@ def test_a_lossy_streams_quality_is_read_for_the_texture_sigmas_codec_floor(tmp_
     assert (x264.codec_crf, mjpeg.codec_crf, ffv1.codec_crf) == (21.5, None, None)
     method = registry.get_method("deepflow")
     for source, crf in ((x264, 21.5), (mjpeg, DEFAULT_CRF), (ffv1, None)):
-        params, built = _for_source("deepflow", {}, method, source)
+        params, built = _for_source("deepflow", {}, method, source, [])
         assert params.get("codec_crf") == crf and built._codec_crf == crf
-    params, _ = _for_source("deepflow", {"codec_crf": 30.0}, method, x264)
+    params, _ = _for_source("deepflow", {"codec_crf": 30.0}, method, x264, [])
     assert params["codec_crf"] == 30.0  # the user's value stands
+
+
+def _textured_frames(count: int, noise: float, seed: int = 0) -> list[np.ndarray]:
+    """``count`` frames of one still texture (+-40 grey levels) with fresh sensor noise in each."""
+    rng = np.random.default_rng(seed)
+    scene = 120 + 40 * rng.standard_normal((64, 96))
+    return [np.clip(np.rint(scene + noise * rng.standard_normal(scene.shape)), 0, 255).astype(np.uint8)
+            for _ in range(count)]
+
+
+def test_a_lossy_codecs_copied_blocks_are_found_and_a_cameras_frames_have_none() -> None:
+    """copied_share: windows that are the frame before's bit for bit, though changed since the
+    first frame (a codec's skipped blocks), and nothing in a camera's noisy frames, a scene
+    without noise that stands still, a repeated frame or a saturated area."""
+    camera = _textured_frames(5, noise=1.0)
+    assert copied_share(iter(camera)) == 0.0
+    # A codec skipped a 16x16 block of the third frame (and of the fourth): the second's there.
+    coded = [f.copy() for f in camera]
+    coded[2][16:32, 24:40] = coded[1][16:32, 24:40]
+    coded[3][16:32, 24:40] = coded[1][16:32, 24:40]
+    share = copied_share(iter(coded))
+    assert HISTORY_SHARE < share < 0.1  # 9x9 window places of the 57x89 (the windows' anchors)
+    # A block copied all the way from the first frame is not a copy of a changed scene.
+    kept = [f.copy() for f in camera]
+    for frame in kept[1:]:
+        frame[16:32, 24:40] = kept[0][16:32, 24:40]
+    assert copied_share(iter(kept)) == 0.0
+    # A repeated frame (a camera's duplicate, a frame-rate conversion) tells nothing.
+    assert copied_share(iter([camera[0], camera[1], camera[1], camera[2]])) == 0.0
+    # A saturated area equal in every frame (an overexposed sky) is no texture.
+    sky = [f.copy() for f in camera]
+    for index, frame in enumerate(sky):
+        frame[:32] = 255 if index else 254
+    assert copied_share(iter(sky)) == 0.0
+    # A scene without noise whose part moves every frame: its still part is the first frame's.
+    still = _textured_frames(1, noise=0.0)[0]
+    moving = [still.copy() for _ in range(5)]
+    for index, frame in enumerate(moving):
+        frame[:, :32] = np.roll(still[:, :32], 2 * index, axis=0)
+    assert copied_share(iter(moving)) == 0.0
+
+
+def test_lossless_files_of_a_lossy_codecs_frames_say_so(tmp_path) -> None:
+    """FrameSource.copied_share reads the first frames of a folder: PNG images of noisy frames
+    none; of the same frames with a codec's skipped block, above HISTORY_SHARE."""
+    frames = _textured_frames(4, noise=1.5, seed=3)
+    for name, images in (("camera", frames), ("exported", frames[:2] + [frames[2].copy(), frames[3].copy()])):
+        if name == "exported":
+            images[2][8:40, 8:40] = images[1][8:40, 8:40]
+        folder = tmp_path / name
+        folder.mkdir()
+        for index, image in enumerate(images):
+            cv2.imwrite(str(folder / f"{index:03d}.png"), image)
+        source = open_source(folder, fps=30.0)
+        assert source.lossless
+        share = source.copied_share()
+        assert (share > HISTORY_SHARE) == (name == "exported"), (name, share)
