@@ -128,8 +128,14 @@ KNOWN_MARGIN = 2.0
 # A window whose background beyond differs from the reference's by more than this many times the
 # median such difference (something moved there: an occlusion, a shadow) is not used.
 KNOWN_STATIC = 4.0
-# Half length of the profile a frame is matched to the reference over, whole.
+# Half length of the profile a frame is matched to the reference over, whole: SHIFT_HALF px on the
+# member's side of the reference's outline and SHIFT_BEYOND beyond it. The background beyond does
+# not move: over a textured wall its pixels pulled the match towards no motion. The tests' lossless
+# bar over a wall of +-35 grey levels, moved 0.1-0.3 px, read 0.56-0.63 of it with 5 px beyond,
+# 0.91-0.97 with 2 (the outline's pixel and its blur's reach) and the sampling of _shift_steps;
+# 1 px lost the bench's `compressed` (CRF 30), 0.187 -> 0.390 px RMSE.
 SHIFT_HALF = 5
+SHIFT_BEYOND = 2
 # Gauss-Newton steps of one outline fit (at most: the fine fit stops at convergence, see CONVERGED_PX).
 N_STEPS = 8
 # Rounds of each blur model's outline fit: the first from the coarse outlines, the next from the
@@ -546,11 +552,18 @@ def _lerp_line(image, line, vertical, pos, length):
 @njit(cache=True, nogil=True)
 def _shift_steps(image, reference, along, d_in, ok_in, lines, vertical, scale, member_var):
     """Gauss-Newton steps of :meth:`MemberEdges._shift`, profile by profile (see there): the
-    displacement ``d`` of each reference profile ``reference`` (pixels ``along`` its line)
-    that matches the frame ``image`` best.
+    displacement ``d`` of each profile of the reference image ``reference`` (pixels ``along``
+    its line) that matches the frame ``image`` best, both sampled half of ``d`` from those pixels
+    (the reference at ``along - d / 2``, the frame at ``along + d / 2``).
+
+    Linear interpolation smooths a profile by an amount that depends on the sampling's fraction
+    of a pixel, least at whole pixels: a frame sampled alone against the reference's own pixels
+    matches best nearer a whole-pixel displacement than the true one (the tests' lossless bar
+    moved 0.1-0.3 px over a uniform wall read 0.85-0.88 of it; 0.91-1.02 so). Sampled half each
+    way, the two fractions are f and 1 - f, smoothed alike, and the pull cancels.
 
     Returns ``(d, var, misfit, ok)``."""
-    n, width = reference.shape
+    n, width = along.shape
     height_img, width_img = image.shape
     d_out = d_in.copy()
     var_out = np.full(n, np.nan)
@@ -569,11 +582,15 @@ def _shift_steps(image, reference, along, d_in, ok_in, lines, vertical, scale, m
             g = 0.0
             rr = 0.0
             for k in range(width):
-                pos = along[i, k] + d
-                value = _lerp_line(image, line, vert, pos, length) / scale
-                slope = 0.5 * (_lerp_line(image, line, vert, pos + 0.5, length)
-                               - _lerp_line(image, line, vert, pos - 0.5, length)) / scale * 2.0
-                r = value - reference[i, k]
+                at_frame = along[i, k] + 0.5 * d
+                at_reference = along[i, k] - 0.5 * d
+                value = _lerp_line(image, line, vert, at_frame, length) / scale
+                r = value - _lerp_line(reference, line, vert, at_reference, length)
+                # d(r)/d(d): half the frame's slope and half the reference's (central differences).
+                slope = 0.5 * ((_lerp_line(image, line, vert, at_frame + 0.5, length)
+                                - _lerp_line(image, line, vert, at_frame - 0.5, length)) / scale
+                               + _lerp_line(reference, line, vert, at_reference + 0.5, length)
+                               - _lerp_line(reference, line, vert, at_reference - 0.5, length))
                 h += slope * slope
                 g += slope * r
                 rr += r * r
@@ -909,28 +926,30 @@ class MemberEdges:
     def _shift(self, image: np.ndarray, guess: np.ndarray, gain: float | None) -> _Outline:
         """Outline positions by matching each profile of the reference as a whole.
 
-        The reference's pixels within :data:`SHIFT_HALF` of its outline are compared with
-        the frame's along the same line, displaced by ``d`` (linear interpolation), and
+        The reference's pixels from :data:`SHIFT_HALF` px inside its outline to
+        :data:`SHIFT_BEYOND` beyond are compared with the frame's along the same line, the two
+        sampled ``d`` apart (linear interpolation, half each way from the pixels midway between
+        the two outlines: see :func:`_shift_steps`), and
         ``d`` is fitted by Gauss-Newton: exact when what is behind the member is uniform,
         whatever the outline's blur and the member's shading; a textured background, which
-        does not move, biases it (the two-layer models are then the ones that agree).
+        does not move, biases it where the outline's blur reaches it (the two-layer models are
+        then the ones that agree).
         """
         ref_edge = self.ref.edge
         finite = np.isfinite(guess) & np.isfinite(ref_edge)
         d = np.where(finite, guess - ref_edge, 0.0)
-        offsets = np.arange(-SHIFT_HALF, SHIFT_HALF + 1)
-        base = np.floor(np.where(np.isfinite(ref_edge), ref_edge, 0.0) + 0.5).astype(np.intp)
+        offsets = np.arange(-SHIFT_HALF, SHIFT_BEYOND + 1)
+        # The pixels midway between the reference's outline and the guessed one: each image is
+        # sampled half the displacement from them (its own outline at the window's place).
+        base = np.floor(np.where(np.isfinite(ref_edge), ref_edge + 0.5 * d, 0.0) + 0.5).astype(np.intp)
         along = base[:, None] + self.side[:, None] * offsets[None, :]
         height, width = image.shape
         length = np.where(self.vertical, height, width)[:, None]
         ok = finite & np.all((along >= 1) & (along < length - 2), axis=1)
         along = np.clip(along, 0, length - 1)
-        line = np.broadcast_to(self.line[:, None], along.shape)
-        reference = self._ref_image[np.where(self.vertical[:, None], along, line),
-                                    np.where(self.vertical[:, None], line, along)].astype(np.float64)
         scale = 1.0 if gain is None else gain
-        # The frame is sampled in place (not copied whole: a 4K frame is 66 MB of float64).
-        d, var, misfit, ok = _shift_steps(image, reference, along, d, ok, self.line, self.vertical,
+        # The images are sampled in place (not copied whole: a 4K frame is 66 MB of float64).
+        d, var, misfit, ok = _shift_steps(image, self._ref_image, along, d, ok, self.line, self.vertical,
                                           float(scale), float(self.member_var))
         edge = np.where(ok, ref_edge + d, np.nan)
         return _Outline(edge, var, self.ref.contrast.copy(), misfit)
