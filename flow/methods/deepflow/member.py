@@ -129,11 +129,16 @@ KNOWN_MARGIN = 2.0
 # median such difference (something moved there: an occlusion, a shadow) is not used.
 KNOWN_STATIC = 4.0
 # Half length of the profile a frame is matched to the reference over, whole: SHIFT_HALF px on the
-# member's side of the reference's outline and SHIFT_BEYOND beyond it. The background beyond does
-# not move: over a textured wall its pixels pulled the match towards no motion. The tests' lossless
-# bar over a wall of +-35 grey levels, moved 0.1-0.3 px, read 0.56-0.63 of it with 5 px beyond,
-# 0.91-0.97 with 2 (the outline's pixel and its blur's reach) and the sampling of _shift_steps;
-# 1 px lost the bench's `compressed` (CRF 30), 0.187 -> 0.390 px RMSE.
+# member's side of the reference's outline and as many beyond it; on lossless frames SHIFT_BEYOND
+# beyond it. The background beyond does not move: over a textured wall its pixels pulled the match
+# towards no motion. The tests' lossless bar over a wall of +-35 grey levels, moved 0.1-0.3 px,
+# read 0.56-0.63 of it with 5 px beyond, 0.91-0.97 with 2 (the outline's pixel and its blur's
+# reach) and the sampling of _shift_steps; 1 px lost the bench's `compressed` (CRF 30), 0.187 ->
+# 0.390 px RMSE. Not on a lossy stream: there both read the workbench's rendered beam worse
+# (config/ci.yaml's ambient scene 0.0162 -> 0.0213 mm RMSE, occlusion 0.0149 -> 0.0183; the
+# bench's `tiny` 0.0646 -> 0.0705 px, g4-cylinder 0.041 -> 0.048, g9-large-motion 0.123 ->
+# 0.131), though other bars moving 0.3 px read better (four of the tests' at CRF 18: 0.070-0.124
+# -> 0.050-0.083 px).
 SHIFT_HALF = 5
 SHIFT_BEYOND = 2
 # Gauss-Newton steps of one outline fit (at most: the fine fit stops at convergence, see CONVERGED_PX).
@@ -550,17 +555,19 @@ def _lerp_line(image, line, vertical, pos, length):
 
 
 @njit(cache=True, nogil=True)
-def _shift_steps(image, reference, along, d_in, ok_in, lines, vertical, scale, member_var):
+def _shift_steps(image, reference, along, d_in, ok_in, lines, vertical, scale, member_var, share):
     """Gauss-Newton steps of :meth:`MemberEdges._shift`, profile by profile (see there): the
     displacement ``d`` of each profile of the reference image ``reference`` (pixels ``along``
-    its line) that matches the frame ``image`` best, both sampled half of ``d`` from those pixels
-    (the reference at ``along - d / 2``, the frame at ``along + d / 2``).
+    its line) that matches the frame ``image`` best, the reference sampled at
+    ``along - share d`` and the frame at ``along + (1 - share) d`` (``share`` 0: the reference's
+    own pixels; 0.5: half of ``d`` each way).
 
     Linear interpolation smooths a profile by an amount that depends on the sampling's fraction
     of a pixel, least at whole pixels: a frame sampled alone against the reference's own pixels
     matches best nearer a whole-pixel displacement than the true one (the tests' lossless bar
     moved 0.1-0.3 px over a uniform wall read 0.85-0.88 of it; 0.91-1.02 so). Sampled half each
-    way, the two fractions are f and 1 - f, smoothed alike, and the pull cancels.
+    way, the two fractions are f and 1 - f, smoothed alike, and the pull cancels (used on lossless
+    frames, see SHIFT_BEYOND).
 
     Returns ``(d, var, misfit, ok)``."""
     n, width = along.shape
@@ -582,15 +589,16 @@ def _shift_steps(image, reference, along, d_in, ok_in, lines, vertical, scale, m
             g = 0.0
             rr = 0.0
             for k in range(width):
-                at_frame = along[i, k] + 0.5 * d
-                at_reference = along[i, k] - 0.5 * d
+                at_frame = along[i, k] + (1.0 - share) * d
+                at_reference = along[i, k] - share * d
                 value = _lerp_line(image, line, vert, at_frame, length) / scale
                 r = value - _lerp_line(reference, line, vert, at_reference, length)
-                # d(r)/d(d): half the frame's slope and half the reference's (central differences).
-                slope = 0.5 * ((_lerp_line(image, line, vert, at_frame + 0.5, length)
-                                - _lerp_line(image, line, vert, at_frame - 0.5, length)) / scale
-                               + _lerp_line(reference, line, vert, at_reference + 0.5, length)
-                               - _lerp_line(reference, line, vert, at_reference - 0.5, length))
+                # d(r)/d(d): the frame's slope and the reference's, each by its share (central
+                # differences).
+                slope = ((1.0 - share) * ((_lerp_line(image, line, vert, at_frame + 0.5, length)
+                                           - _lerp_line(image, line, vert, at_frame - 0.5, length)) / scale)
+                         + share * (_lerp_line(reference, line, vert, at_reference + 0.5, length)
+                                    - _lerp_line(reference, line, vert, at_reference - 0.5, length)))
                 h += slope * slope
                 g += slope * r
                 rr += r * r
@@ -717,17 +725,20 @@ class MemberEdges:
 
     def __init__(self) -> None:
         self.params = MemberParams()
+        self.lossless = False  # the frames are (see from_reference)
         self.n_profiles = 0
         self.models: tuple[int, ...] = tuple(range(len(BLURS) + 1))  # see _plausible_models
 
     @classmethod
     def from_reference(cls, reference: np.ndarray, mask: np.ndarray, *,
-                       params: MemberParams | None = None) -> MemberEdges:
-        """Analyse ``reference`` (grey, any dtype) and the bool POI ``mask`` of the same shape."""
+                       params: MemberParams | None = None, lossless: bool = False) -> MemberEdges:
+        """Analyse ``reference`` (grey, any dtype) and the bool POI ``mask`` of the same shape;
+        ``lossless``: the frames are (see :meth:`_shift`)."""
         if reference.ndim != 2 or mask.shape != reference.shape:
             raise ValueError(f"reference {reference.shape} and mask {mask.shape} must be 2-D of one shape")
         self = cls()
         self.params = params or MemberParams()
+        self.lossless = bool(lossless)
         ref = reference.astype(np.float32)
         mask = mask.astype(bool)
         if mask.sum() < 3:
@@ -926,22 +937,23 @@ class MemberEdges:
     def _shift(self, image: np.ndarray, guess: np.ndarray, gain: float | None) -> _Outline:
         """Outline positions by matching each profile of the reference as a whole.
 
-        The reference's pixels from :data:`SHIFT_HALF` px inside its outline to
-        :data:`SHIFT_BEYOND` beyond are compared with the frame's along the same line, the two
-        sampled ``d`` apart (linear interpolation, half each way from the pixels midway between
-        the two outlines: see :func:`_shift_steps`), and
-        ``d`` is fitted by Gauss-Newton: exact when what is behind the member is uniform,
-        whatever the outline's blur and the member's shading; a textured background, which
-        does not move, biases it where the outline's blur reaches it (the two-layer models are
-        then the ones that agree).
+        The reference's pixels within :data:`SHIFT_HALF` of its outline are compared with the
+        frame's along the same line, displaced by ``d`` (linear interpolation), and ``d`` is
+        fitted by Gauss-Newton: exact when what is behind the member is uniform, whatever the
+        outline's blur and the member's shading; a textured background, which does not move,
+        biases it (the two-layer models are then the ones that agree). On lossless frames only
+        :data:`SHIFT_BEYOND` px beyond the outline are taken and the two images are sampled half
+        of ``d`` each way from the pixels midway between their outlines (see
+        :func:`_shift_steps`).
         """
         ref_edge = self.ref.edge
         finite = np.isfinite(guess) & np.isfinite(ref_edge)
         d = np.where(finite, guess - ref_edge, 0.0)
-        offsets = np.arange(-SHIFT_HALF, SHIFT_BEYOND + 1)
-        # The pixels midway between the reference's outline and the guessed one: each image is
-        # sampled half the displacement from them (its own outline at the window's place).
-        base = np.floor(np.where(np.isfinite(ref_edge), ref_edge + 0.5 * d, 0.0) + 0.5).astype(np.intp)
+        share = 0.5 if self.lossless else 0.0
+        offsets = np.arange(-SHIFT_HALF, (SHIFT_BEYOND if self.lossless else SHIFT_HALF) + 1)
+        # The window's pixels: about the point each image is sampled from (lossless, midway
+        # between the reference's outline and the guessed one).
+        base = np.floor(np.where(np.isfinite(ref_edge), ref_edge + share * d, 0.0) + 0.5).astype(np.intp)
         along = base[:, None] + self.side[:, None] * offsets[None, :]
         height, width = image.shape
         length = np.where(self.vertical, height, width)[:, None]
@@ -950,7 +962,7 @@ class MemberEdges:
         scale = 1.0 if gain is None else gain
         # The images are sampled in place (not copied whole: a 4K frame is 66 MB of float64).
         d, var, misfit, ok = _shift_steps(image, self._ref_image, along, d, ok, self.line, self.vertical,
-                                          float(scale), float(self.member_var))
+                                          float(scale), float(self.member_var), share)
         edge = np.where(ok, ref_edge + d, np.nan)
         return _Outline(edge, var, self.ref.contrast.copy(), misfit)
 

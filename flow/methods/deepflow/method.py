@@ -518,7 +518,7 @@ class _Region:
            texture: bool, bias_correction: bool = True, codec_crf: float | None = None) -> _Region:
         rows, cols = np.nonzero(mask)
         height, width = reference.shape
-        edges = MemberEdges.from_reference(reference, mask) if member else None
+        edges = MemberEdges.from_reference(reference, mask, lossless=codec_crf is None) if member else None
         presmooth = _presmooth(codec_crf)
         fit = (RegionFit(reference, rows, cols, bias_correction=bias_correction, presmooth_px=presmooth,
                          rounding_floor=codec_crf is None)
