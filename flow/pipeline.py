@@ -208,13 +208,15 @@ def _for_source(name: str, params: dict[str, Any], method: Any, source: Any,
                 notes: list[str]) -> tuple[dict[str, Any], Any]:
     """A method's parameters that depend on the input, resolved from it where the user left them
     (``bias_correction``: on for lossless frames only, see :attr:`flow.io.frames.FrameSource.lossless`,
-    and not for lossless files of a lossy codec's frames, see :func:`_lossy_history`; ``codec_crf``: a
-    lossy stream's quality as its encoder wrote it, :data:`DEFAULT_CRF` where it did not), and the method
-    built with them; the sidecar records the value taken."""
+    and not for lossless files of a lossy codec's frames, see :func:`_lossy_history`, unless the user
+    turned it on; ``codec_crf``: a lossy stream's quality as its encoder wrote it, :data:`DEFAULT_CRF`
+    where it did not), and the method built with them; the sidecar records the value taken."""
     declared = {param.name for param in getattr(method, "parameters", ())}
     given = {key for key, value in params.items() if value is not None}
     unset = ({"bias_correction", "codec_crf"} & declared) - given
-    lossless = bool(unset) and source.lossless and not _lossy_history(source, notes)
+    # A bias correction the user turned on says the frames are a camera's own: not looked into.
+    trusted = params.get("bias_correction") is True
+    lossless = bool(unset) and source.lossless and (trusted or not _lossy_history(source, notes))
     resolved = {}
     if "bias_correction" in unset:
         resolved["bias_correction"] = lossless
@@ -236,7 +238,8 @@ def _lossy_history(source: Any, notes: list[str]) -> bool:
     _note(notes, f"{source.path.name}: lossless files, but {share:.0%} of a frame's textured {COPY_WINDOW_PX}x"
                  f"{COPY_WINDOW_PX} px windows are the frame before's bit for bit, as a lossy codec leaves them "
                  f"(frames exported from a video): read as a lossy stream of unknown quality (codec_crf "
-                 f"{DEFAULT_CRF:g}); pass --param codec_crf=N with the video's quality where known")
+                 f"{DEFAULT_CRF:g}); pass --param codec_crf=N with the video's quality where known, or "
+                 f"--param bias_correction=true where the frames are a camera's own or a render without noise")
     return True
 
 

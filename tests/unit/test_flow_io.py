@@ -438,3 +438,25 @@ def test_lossless_files_of_a_lossy_codecs_frames_say_so(tmp_path) -> None:
         assert source.lossless
         share = source.copied_share()
         assert (share > HISTORY_SHARE) == (name == "exported"), (name, share)
+
+
+def test_a_user_who_turns_the_bias_correction_on_keeps_lossless_files_lossless(tmp_path, capsys) -> None:
+    """The copied blocks' test can be wrong (a render without noise shows such blocks where it
+    moves less than its grey levels' rounding in a frame), so the note names the way out:
+    ``--param bias_correction=true`` keeps the frames lossless (no codec floor, nothing noted)."""
+    from flow.methods import registry
+    from flow.pipeline import DEFAULT_CRF, _for_source
+
+    frames = _textured_frames(4, noise=1.5, seed=3)
+    frames[2][8:40, 8:40] = frames[1][8:40, 8:40]
+    for index, image in enumerate(frames):
+        cv2.imwrite(str(tmp_path / f"{index:03d}.png"), image)
+    source = open_source(tmp_path, fps=30.0)
+    method = registry.get_method("deepflow")
+    notes: list[str] = []
+    params, _ = _for_source("deepflow", {}, method, source, notes)
+    assert (params["codec_crf"], params["bias_correction"]) == (DEFAULT_CRF, False)
+    assert len(notes) == 1 and "--param bias_correction=true" in notes[0] and notes[0] in capsys.readouterr().err
+    notes = []
+    params, built = _for_source("deepflow", {"bias_correction": True}, method, source, notes)
+    assert params.get("codec_crf") is None and built._codec_crf is None and notes == []
