@@ -21,7 +21,7 @@ import numpy as np
 from flow.io.errors import InputError
 
 __all__ = ["FPS_RANGE", "FrameSource", "Roi", "as_uint8", "check_fps", "copied_share", "deep_image_gain",
-           "significant_bits", "to_grey"]
+           "significant_bits", "to_grey", "unchanged_windows"]
 
 # Frames in lossless files can still be a lossy codec's output (a phone video exported to PNG or
 # TIFF images, as many DIC tools want their input). Such a codec leaves what a camera's frames never
@@ -36,10 +36,11 @@ __all__ = ["FPS_RANGE", "FrameSource", "Roi", "as_uint8", "check_fps", "copied_s
 # a few tenths of a pixel 0.0006 -> 0.0011, a textured panel and a faint texture filling the view
 # within 0.0001 px), but a panel of 0.9 grey levels per pixel moving 0.3 px read 0.045 -> 0.199 px
 # (slope 0.86 -> 0.12): the note names the way out, --param bias_correction=true (see
-# flow.pipeline._for_source). Measured on the bench's 16 H.264
-# clips exported to PNG, the largest share over the first eight pairs of frames: 7-67 % of the
-# textured windows (CRF 12-30; the whole view moving: one pair of the eight); on the DIC
-# Challenge's images, a Phantom and a Photron camera file: none.
+# flow.pipeline._for_source). Measured on the bench's 16 H.264 clips exported to PNG, the largest
+# share over the first eight pairs of frames: 7-64 % of the textured windows (CRF 12-30; the whole
+# view moving: one pair of the eight); on the DIC Challenge's images, a Phantom and a Photron
+# camera file: none. (A lossy stream's texture fit leaves such windows out:
+# flow.methods.deepflow.codecfloor.codec_copies.)
 COPY_WINDOW_PX = 8
 COPY_MIN_RANGE = 2.0
 HISTORY_PAIRS = 8
@@ -110,16 +111,21 @@ def significant_bits(image: np.ndarray) -> int:
 FPS_RANGE = (1e-6, 1e10)
 
 
+def unchanged_windows(current: np.ndarray, earlier: np.ndarray, side: int = COPY_WINDOW_PX) -> np.ndarray:
+    """Where the ``side`` x ``side`` window about each pixel (``side // 2`` rows and columns
+    before it to ``side // 2 - 1`` after) of ``current`` equals ``earlier`` in every pixel (bool,
+    their shape); a window reaching past their edge does not."""
+    equal = (current == earlier).view(np.uint8)
+    return cv2.erode(equal, np.ones((side, side), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                     borderValue=0).astype(bool)
+
+
 def copied_share(frames: Iterator[np.ndarray]) -> float:
     """The largest share, over the pairs of consecutive ``frames`` (grey, one shape) after the
     first, of a frame's textured windows that are the frame before's bit for bit but not the
     first frame's (see COPY_WINDOW_PX): above HISTORY_SHARE, the frames have been through a lossy
     codec. A pair equal in every pixel (a repeated frame) tells nothing and is passed over."""
     window = np.ones((COPY_WINDOW_PX, COPY_WINDOW_PX), np.uint8)
-
-    def whole(equal: np.ndarray) -> np.ndarray:
-        return cv2.erode(equal.view(np.uint8), window).astype(bool)
-
     largest, first, before = 0.0, None, None
     for frame in frames:
         if first is None:
@@ -127,8 +133,8 @@ def copied_share(frames: Iterator[np.ndarray]) -> float:
         elif before is not None and not np.array_equal(before, frame):
             level = frame if frame.dtype in (np.uint8, np.float32) else frame.astype(np.float32)
             textured = (cv2.dilate(level, window).astype(np.float32) - cv2.erode(level, window)) >= COPY_MIN_RANGE
-            copied = whole(frame == before) & ~whole(frame == first) & textured
             if textured.any():
+                copied = unchanged_windows(frame, before) & ~unchanged_windows(frame, first) & textured
                 largest = max(largest, float(np.count_nonzero(copied) / np.count_nonzero(textured)))
         before = frame
     return largest

@@ -30,6 +30,7 @@ import subprocess
 import numpy as np
 from scipy import ndimage
 
+from flow.io.frames import COPY_WINDOW_PX, unchanged_windows
 from flow.methods.deepflow.regionfit import RegionFit
 
 # The shifted copies: FLOOR_FRAMES frames along a circle of FLOOR_RADIUS_PX, one turn in
@@ -50,8 +51,9 @@ FLOOR_MARGIN_PX = 24
 FLOOR_MAX_PIXELS = 1 << 20
 # A copied block (see the module's docstring): a window of this side (px) equal to the reference
 # in every pixel. H.264's smallest copied partition (its skip and direct modes work on 16x16
-# macroblocks, 8x8 in part); any placement, so that a crop of the frame finds them too.
-COPY_BLOCK_PX = 8
+# macroblocks, 8x8 in part); any placement, so that a crop of the frame finds them too. The same
+# windows tell frames in lossless files that a lossy codec made (flow.io.frames.copied_share).
+COPY_BLOCK_PX = COPY_WINDOW_PX
 
 
 def codec_copies(reference: np.ndarray, current: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -66,10 +68,9 @@ def codec_copies(reference: np.ndarray, current: np.ndarray, rows: np.ndarray, c
     pad = COPY_BLOCK_PX
     r0, c0 = max(int(rows.min()) - pad, 0), max(int(cols.min()) - pad, 0)
     r1, c1 = min(int(rows.max()) + pad + 1, height), min(int(cols.max()) + pad + 1, width)
-    changed = (current[r0:r1, c0:c1] != reference[r0:r1, c0:c1]).astype(np.uint8)
     # The squares equal throughout (anchored at each pixel: it and the pixels up to
     # COPY_BLOCK_PX / 2 before and after), then every pixel such a square covers.
-    unchanged = ndimage.maximum_filter(changed, size=COPY_BLOCK_PX, mode="constant", cval=1) == 0
+    unchanged = unchanged_windows(current[r0:r1, c0:c1], reference[r0:r1, c0:c1], COPY_BLOCK_PX)
     covered = ndimage.maximum_filter(unchanged.astype(np.uint8), size=COPY_BLOCK_PX, origin=-1,
                                      mode="constant", cval=0)
     return covered[rows - r0, cols - c0] > 0
