@@ -15,8 +15,11 @@ export MPLBACKEND ?= Agg
 all: $(STAMP)
 	$(BIN)/snakemake --cores $(CORES) --rerun-incomplete all
 
+# Two workers (pytest-xdist), each test file whole on one of them: the suite's files share no
+# paths (each test writes under its own tmp_path). TEST_WORKERS=0 runs it in one process.
+TEST_WORKERS ?= 2
 test: $(STAMP) browser
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 # The tests marked slow (left out of `make test` to keep it under 15 minutes on 2 cores).
 test-slow: $(STAMP)
