@@ -20,6 +20,8 @@ from flow.io.imagefiles import because, check_image_file, read_image
 __all__ = ["IMAGE_SUFFIXES", "ImageFolderSource"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
+#: Bits a float32 grey keeps (its significand): the depth of floating-point and 32-bit data measured.
+FLOAT_BITS = 24
 # Image formats that keep what the sensor recorded (WebP may be either: taken as lossy).
 LOSSLESS_IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
 
@@ -64,6 +66,12 @@ class ImageFolderSource(FrameSource):
         self.header_frames = len(self._files)
         if first.dtype == np.uint16:
             self._keep_depth(first, significant_bits(first), "16-bit images")
+        elif first.dtype != np.uint8:
+            # Floating-point (TIFF's SampleFormat 3) or 32-bit integer images, as DIC tools and
+            # scientific cameras write them: one gain like 16-bit data's, measured as float32.
+            kind = "floating-point" if first.dtype.kind == "f" else "integer"
+            self._keep_depth(first, min(FLOAT_BITS, 8 * first.dtype.itemsize),
+                             f"{8 * first.dtype.itemsize}-bit {kind} images")
         self._set_roi(roi)
 
     @property
@@ -93,4 +101,9 @@ class ImageFolderSource(FrameSource):
                     f"image {file.name} is {image.shape[1]}x{image.shape[0]} but the first is "
                     f"{self.width}x{self.height}: all images must have the same size")
             time_s = index / self.fps if math.isfinite(self.fps) else float(index)
-            yield index, time_s, self._crop(image)
+            grey = self._crop(image)
+            if grey.dtype == np.float32 and not np.isfinite(grey).all():
+                bad = int(np.count_nonzero(~np.isfinite(grey)))
+                raise InputError(f"image {file.name} holds {bad} NaN or infinite pixel(s) in the measured area: "
+                                 "replace them (e.g. from their neighbours) or remove the image")
+            yield index, time_s, grey

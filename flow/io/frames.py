@@ -95,7 +95,11 @@ def deep_image_gain(image: np.ndarray) -> float:
     High-speed cameras store 10-14-bit data in 16-bit words, often far below full scale: a
     fixed ``>> 8`` would leave an underexposed 10-bit clip (values 20-250) at 0-0 grey.
     """
-    level = float(np.percentile(image, 99.9)) if image.size else 0.0
+    finite = image[np.isfinite(image)] if image.dtype.kind == "f" else image
+    level = float(np.percentile(finite, 99.9)) if finite.size else 0.0
+    if image.dtype.kind == "f":
+        # Floating-point data has no unit (0-1 from most tools, counts from others).
+        return DEEP_TARGET_LEVEL / level if level > 0 else 1.0
     return DEEP_TARGET_LEVEL / max(level, 1.0)
 
 
@@ -153,18 +157,20 @@ def check_fps(fps: float | None, name: str = "--fps") -> None:
 
 
 def to_grey(image: np.ndarray, gain: float | None = None) -> np.ndarray:
-    """Grey view of a decoded frame (BGR, BGRA, grey or 16-bit).
+    """Grey view of a decoded frame (BGR, BGRA, grey, 16-bit, 32-bit or floating-point).
 
-    8-bit frames stay uint8. ``gain``: the sequence's gain for 16-bit data
+    8-bit frames stay uint8. ``gain``: the sequence's gain for deeper data
     (:func:`deep_image_gain`): the frame comes out float32 on the 8-bit grey scale at full
-    depth (neither rounded nor clipped); None: ``>> 8`` to uint8 (a view for people, e.g.
-    figures, not for measuring).
+    depth (neither rounded nor clipped); None: ``>> 8`` to uint8 for 16-bit data, clipped to
+    0-255 otherwise (a view for people, e.g. figures, not for measuring).
     """
     if image.dtype == np.uint16:
         if gain is None:
             image = (image >> 8).astype(np.uint8)
         else:
             image = image.astype(np.float32) * np.float32(gain)
+    elif image.dtype != np.uint8 and gain is not None:  # floating-point or 32-bit images
+        image = (image.astype(np.float64) * gain).astype(np.float32)
     elif image.dtype != np.uint8:
         image = np.clip(image, 0, 255).astype(np.uint8)
     if image.ndim == 3:

@@ -679,6 +679,38 @@ def test_16_bit_images_keep_their_detail(tmp_path, low, high) -> None:
     assert any(note.startswith("16-bit images: grey = value x") for note in meta["notes"])
 
 
+def test_floating_point_images_are_read_as_their_8_bit_twins(tmp_path, capsys) -> None:
+    """A DIC tool's export as 0-1 float TIFFs reads what the same frames as 8-bit PNGs read (the
+    default method; before, the floats were clipped to grey 0 and the run refused as having no
+    texture); a NaN in one image stops the run with one line naming it, and leaves no output."""
+    shifts = [0.0, 0.4, 0.8, 1.2]
+    readings = {}
+    for kind in ("png", "tif"):
+        folder = tmp_path / kind
+        folder.mkdir()
+        for i, shift in enumerate(shifts):
+            image = np.clip(np.rint(texture(shift)), 0, 255)
+            cv2.imwrite(str(folder / f"f{i}.{kind}"), image.astype(np.uint8) if kind == "png"
+                        else (image / 255.0).astype(np.float32))
+        out = tmp_path / f"{kind}.csv"
+        assert main(["track", str(folder), "--fps", "100", "--rect", "40,30,80,60", "--out", str(out),
+                     "--no-progress"]) == 0
+        readings[kind] = np.array([float(r["dx_px"]) for r in read_csv(out)])
+    assert np.allclose(readings["tif"], shifts, atol=0.05), readings
+    assert np.allclose(readings["tif"], readings["png"], atol=0.01), readings
+    capsys.readouterr()
+    image = (texture(0.4) / 255.0).astype(np.float32)
+    image[50, 70] = np.nan
+    cv2.imwrite(str(tmp_path / "tif" / "f1.tif"), image)
+    out = tmp_path / "nan.csv"
+    assert main(["track", str(tmp_path / "tif"), "--fps", "100", "--rect", "40,30,80,60", "--out", str(out),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "image f1.tif holds 1 NaN or infinite pixel" in err, err
+    assert not out.exists() and not out.with_suffix(".json").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["png", "png.csv", "png.json", "tif", "tif.csv", "tif.json"]
+
+
 def test_deep_data_is_measured_at_full_depth(tmp_path) -> None:
     """A faint texture in 12-bit data (+-11 counts, +-0.6 grey levels on the 8-bit scale):
     the default method reads it at full depth, more accurately than from the same frames

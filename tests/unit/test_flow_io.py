@@ -119,6 +119,36 @@ def test_sixteen_bit_images_are_measured_at_full_depth(tmp_path) -> None:
     assert source.bit_depth == 8 and next(iter(source))[2].dtype == np.uint8
 
 
+@pytest.mark.parametrize("dtype, scale", [(np.float32, 1 / 255), (np.float64, 3.7), (np.int32, 1000)])
+def test_floating_point_and_32_bit_images_are_measured_at_full_depth(tmp_path, dtype, scale) -> None:
+    """Floating-point TIFFs (0-1 from most DIC tools, any unit from others) and 32-bit integer
+    ones get one gain to the 8-bit grey scale, like 16-bit data, and stay float32. Before, they
+    were clipped to 0-255: 0-1 data read as a uniform grey 0 and the run was refused."""
+    rng = np.random.default_rng(4)
+    first = (rng.uniform(40, 200, (12, 16)) * scale).astype(dtype)
+    second = (first * dtype(1.01)).astype(dtype) if dtype != np.int32 else first + 7
+    cv2.imwrite(str(tmp_path / "a.tif"), first)
+    cv2.imwrite(str(tmp_path / "b.tif"), second)
+    source = open_source(tmp_path, fps=10.0)
+    frames = [grey for _, _, grey in source]
+    gain = deep_image_gain(first)
+    assert source.bit_depth == 24 and frames[0].dtype == np.float32
+    assert np.allclose(frames[0], first * gain, rtol=1e-6) and np.allclose(frames[1], second * gain, rtol=1e-6)
+    assert 180 < np.percentile(frames[0], 99.9) < 230
+    assert any(note.startswith(f"{8 * np.dtype(dtype).itemsize}-bit") for note in source.notes)
+
+
+def test_not_a_number_in_an_image_stops_the_run_naming_the_image(tmp_path) -> None:
+    image = np.random.default_rng(5).uniform(0.2, 0.8, (12, 16)).astype(np.float32)
+    cv2.imwrite(str(tmp_path / "a.tif"), image)
+    image[3, 4] = np.nan
+    image[5, 6] = np.inf
+    cv2.imwrite(str(tmp_path / "b.tif"), image)
+    source = open_source(tmp_path, fps=10.0)
+    with pytest.raises(InputError, match=r"image b\.tif holds 2 NaN or infinite pixel\(s\)"):
+        list(source)
+
+
 def test_as_uint8_and_significant_bits() -> None:
     image = np.array([[-3.0, 0.4, 0.6], [254.5, 255.2, 900.0]], np.float32)
     assert as_uint8(image).tolist() == [[0, 0, 1], [254, 255, 255]]
