@@ -24,6 +24,33 @@ def mask_labels(image: np.ndarray) -> np.ndarray:
     return (image > 127).astype(np.int32)
 
 
+def read_mask_image(path: str | Path) -> tuple[np.ndarray | None, str, bool]:
+    """A mask file's grey image (None where it cannot be decoded), the decoder's complaint, and
+    whether its alpha channel decided it.
+
+    Image editors save a mask drawn on a transparent layer with an alpha channel, and the
+    colour under the transparent pixels is whatever the editor keeps there (white, in some):
+    read as grey alone, such a mask selected the whole frame. Transparent pixels (alpha below
+    128) are therefore not part of the mask; where the opaque pixels are all black (the region
+    drawn in the alpha channel alone), the opaque pixels are the mask."""
+    image, complaint = read_image(path, cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        return None, complaint, False
+    full, _ = read_image(path, cv2.IMREAD_UNCHANGED)
+    if full is None or full.ndim != 3 or full.shape[2] != 4 or full.shape[:2] != image.shape:
+        return image, complaint, False
+    alpha = full[..., 3]
+    if alpha.dtype != np.uint8:
+        alpha = (alpha >> 8).astype(np.uint8) if alpha.dtype == np.uint16 else np.clip(alpha * 255.0, 0, 255).astype(np.uint8)
+    opaque = alpha >= 128
+    if opaque.all():
+        return image, complaint, False
+    drawn = np.where(opaque, image, 0).astype(np.uint8)
+    if not drawn.any():
+        drawn = np.where(opaque, 255, 0).astype(np.uint8)
+    return drawn, complaint, True
+
+
 def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: str = "mask",
               instead: str = "--rect/--polygon", rotation_deg: int = 0,
               notes: list[str] | None = None, labels: bool = False) -> np.ndarray:
@@ -39,12 +66,14 @@ def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: 
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{what} {str(path)!r} does not exist: check the path or use {instead}")
-    image, complaint = read_image(path, cv2.IMREAD_GRAYSCALE)
+    image, complaint, transparent = read_mask_image(path)
     if image is None:
         because = f" ({complaint})" if complaint else ""
         raise InputError(f"{what} {str(path)!r} cannot be read{because}: save it as an 8-bit PNG")
     if complaint and notes is not None:
         notes.append(f"{what} {path.name} decoded with a warning: {complaint}")
+    if transparent and notes is not None:
+        notes.append(f"{what} {path.name} has transparent pixels (alpha below 128): they are not part of it")
     height, width = image.shape
     if rotation_deg in (90, 270) and (height, width) == tuple(frame_size) and (width, height) != tuple(frame_size):
         image = cv2.rotate(image, DISPLAY_ROTATIONS[rotation_deg])
@@ -65,7 +94,7 @@ def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: 
 
 def pixels_outside_roi(path: str | Path, *, frame_size: tuple[int, int], roi: Roi) -> int:
     """How many of a full-frame mask's pixels the ROI leaves out (0 for an ROI-sized mask)."""
-    image, _ = read_image(path, cv2.IMREAD_GRAYSCALE)
+    image, _, _ = read_mask_image(path)
     if image is None or (image.shape[1], image.shape[0]) != tuple(frame_size):
         return 0
     labels = mask_labels(image) > 0

@@ -43,6 +43,34 @@ def test_image_folder_streams_grey_roi_with_fps_timestamps(tmp_path) -> None:
     assert source.frames_read == 3 and not source.truncated
 
 
+def test_a_mask_drawn_on_a_transparent_layer_is_what_is_opaque(tmp_path) -> None:
+    """Masks saved from an image editor's transparent layer: the transparent pixels are not the
+    mask whatever their colour (white under them selected the whole frame before), a region
+    drawn in the alpha channel alone (black paint) is its opaque pixels, labels keep their
+    grey values, and a mask without transparency reads as before."""
+    roi = Roi(0, 0, 50, 40)
+    drawn = np.zeros((40, 50), bool)
+    drawn[12:15, 11:16] = True
+    cases = {
+        "white_under": (np.dstack([np.full((40, 50), 255, np.uint8)] * 3 + [drawn.astype(np.uint8) * 255]), drawn),
+        "alpha_only": (np.dstack([np.zeros((40, 50), np.uint8)] * 3 + [drawn.astype(np.uint8) * 255]), drawn),
+        "opaque": (np.dstack([drawn.astype(np.uint8) * 255] * 3 + [np.full((40, 50), 255, np.uint8)]), drawn),
+    }
+    for name, (image, expected) in cases.items():
+        cv2.imwrite(str(tmp_path / f"{name}.png"), image)
+        notes: list[str] = []
+        mask = load_mask(tmp_path / f"{name}.png", frame_size=(50, 40), roi=roi, notes=notes)
+        assert np.array_equal(mask, expected), name
+        assert any("transparent pixels" in note for note in notes) == (name != "opaque"), (name, notes)
+    labels = np.zeros((40, 50), np.uint8)
+    labels[2:6, 2:6], labels[20:25, 30:40] = 1, 2
+    alpha = np.full((40, 50), 255, np.uint8)
+    alpha[20:25, 30:35] = 0
+    cv2.imwrite(str(tmp_path / "labels.png"), np.dstack([labels] * 3 + [alpha]))
+    read = load_mask(tmp_path / "labels.png", frame_size=(50, 40), roi=roi, labels=True)
+    assert (read == 1).sum() == 16 and (read == 2).sum() == 25 and not read[20:25, 30:35].any()
+
+
 def test_masks_full_size_roi_size_rect_polygon_and_grid(tmp_path) -> None:
     roi = Roi(10, 10, 20, 10)
     full = np.zeros((40, 50), np.uint8)
