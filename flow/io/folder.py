@@ -1,4 +1,5 @@
-"""The image-folder reader: a folder of image files, one frame each, in name order.
+"""The image-folder reader: a folder of image files, one frame each, in name order (numbers in
+the names compared as numbers: ``img2`` before ``img10``).
 
 Images carry no time stamps: a frame's time is its index over the frame rate the user gives.
 Every image's header and structure are checked before the first frame is measured.
@@ -7,6 +8,7 @@ Every image's header and structure are checked before the first frame is measure
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -26,8 +28,43 @@ FLOAT_BITS = 24
 LOSSLESS_IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
 
 
+_DIGITS = re.compile(r"(\d+)")
+
+
+def name_order(path: Path) -> tuple:
+    """Sort key of an image file: its name with each run of digits compared as a number
+    (``frame2.png`` before ``frame10.png``; zero-padded names keep their plain order)."""
+    parts = _DIGITS.split(path.name)
+    return tuple(int(part) if i % 2 else part for i, part in enumerate(parts)), path.name
+
+
+def numbering_note(files: list[Path]) -> str | None:
+    """What the user should know where the images' names are numbered and the numbers do not
+    go up by one (frames left out, or every k-th frame exported): time_s counts one frame per
+    image. None where they do, or where the names differ in more than one number."""
+    split = [_DIGITS.split(p.stem) for p in files]
+    if len(files) < 2 or len({len(parts) for parts in split}) != 1:
+        return None
+    varying = [i for i in range(1, len(split[0]), 2) if len({parts[i] for parts in split}) > 1]
+    if len(varying) != 1 or any(parts[::2] != split[0][::2] for parts in split):
+        return None
+    numbers = np.array([int(parts[varying[0]]) for parts in split])
+    steps = np.diff(numbers)
+    if (steps == 1).all():
+        return None
+    where = f"{files[0].name}, {files[1].name}, ..., {files[-1].name}"
+    if (steps == steps[0]).all() and steps[0] > 1:
+        return (f"the images' numbers go up by {steps[0]} ({where}): time_s counts one frame per image at "
+                f"--fps; if --fps is the camera's rate, pass it divided by {steps[0]}")
+    first = files[int(np.argmax(steps != 1))].name
+    missing, repeated = int(np.sum(np.maximum(steps - 1, 0))), int(np.sum(steps <= 0))
+    odd = " and ".join(([f"skip {missing} value(s)"] if missing else []) + ([f"repeat {repeated} time(s)"] if repeated else []))
+    return (f"the images' numbers {odd} (first after {first}; {where}): time_s counts one frame per image at "
+            "--fps, as if none were missing")
+
+
 class ImageFolderSource(FrameSource):
-    """A folder of images (sorted by name), one frame each.
+    """A folder of images (in name order, see :func:`name_order`), one frame each.
 
     Parameters
     ----------
@@ -46,8 +83,8 @@ class ImageFolderSource(FrameSource):
     def __init__(self, path: Path, *, roi: Roi | None = None, fps: float | None = None,
                  require_fps: bool = True) -> None:
         super().__init__(path)
-        self._files = sorted(p for p in self.path.iterdir()
-                             if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+        self._files = sorted((p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
+                             key=name_order)
         if not self._files:
             raise InputError(f"folder {str(self.path)!r} holds no images ({', '.join(IMAGE_SUFFIXES)})")
         if fps is None and require_fps:
@@ -64,6 +101,9 @@ class ImageFolderSource(FrameSource):
         self._scan_folder()
         self.fps = float(fps) if fps else float("nan")
         self.header_frames = len(self._files)
+        numbering = numbering_note(self._files)
+        if numbering:
+            self.notes.append(numbering)
         if first.dtype == np.uint16:
             self._keep_depth(first, significant_bits(first), "16-bit images")
         elif first.dtype != np.uint8:

@@ -177,6 +177,26 @@ def test_not_a_number_in_an_image_stops_the_run_naming_the_image(tmp_path) -> No
         list(source)
 
 
+def test_numbered_images_are_read_in_their_numbers_order(tmp_path) -> None:
+    """Names numbered without zero padding (frame1 ... frame12): frame10 comes after frame9, not
+    after frame1 (a plain name sort scrambled the time series and said nothing); padded names
+    keep their order."""
+    for i in range(1, 13):
+        cv2.imwrite(str(tmp_path / f"frame{i}.png"), np.full((6, 8), 10 * i, np.uint8))
+    source = open_source(tmp_path, fps=10.0)
+    assert [int(grey.mean()) for _, _, grey in source] == [10 * i for i in range(1, 13)]
+    assert not any("numbers" in note for note in source.notes)
+
+
+@pytest.mark.parametrize("numbers, said", [((0, 2, 4, 6), "go up by 2"), ((1, 2, 4, 5), "skip 1 value(s) (first after f2.png"),
+                                           ((1, 2, 3, 4), None)])
+def test_images_whose_numbers_do_not_go_up_by_one_are_noted(tmp_path, numbers, said) -> None:
+    for n in numbers:
+        cv2.imwrite(str(tmp_path / f"f{n}.png"), np.full((6, 8), 80, np.uint8))
+    notes = [note for note in open_source(tmp_path, fps=10.0).notes if "numbers" in note]
+    assert (notes == []) if said is None else (len(notes) == 1 and said in notes[0]), notes
+
+
 def test_as_uint8_and_significant_bits() -> None:
     image = np.array([[-3.0, 0.4, 0.6], [254.5, 255.2, 900.0]], np.float32)
     assert as_uint8(image).tolist() == [[0, 0, 1], [254, 255, 255]]
