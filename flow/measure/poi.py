@@ -32,11 +32,18 @@ def read_mask_image(path: str | Path) -> tuple[np.ndarray | None, str, bool]:
     colour under the transparent pixels is whatever the editor keeps there (white, in some):
     read as grey alone, such a mask selected the whole frame. Transparent pixels (alpha below
     128) are therefore not part of the mask; where the opaque pixels are all black (the region
-    drawn in the alpha channel alone), the opaque pixels are the mask."""
+    drawn in the alpha channel alone), the opaque pixels are the mask. A 16-bit grey mask whose
+    values fit in 8 bits (a labelling tool's labels) is read by its values."""
     image, complaint = read_image(path, cv2.IMREAD_GRAYSCALE)
     if image is None:
         return None, complaint, False
     full, _ = read_image(path, cv2.IMREAD_UNCHANGED)
+    if full is not None and full.ndim == 2 and full.dtype == np.uint16 and full.shape == image.shape \
+            and int(full.max()) <= 255:
+        # A 16-bit grey mask holding 8-bit values (labels 1, 2, ... as a labelling tool saves
+        # them, or 0/1, 0/255): the values themselves (OpenCV's grey read keeps the high byte,
+        # 0 for all of them).
+        return full.astype(np.uint8), complaint, False
     if full is None or full.ndim != 3 or full.shape[2] != 4 or full.shape[:2] != image.shape:
         return image, complaint, False
     alpha = full[..., 3]

@@ -71,6 +71,22 @@ def test_a_mask_drawn_on_a_transparent_layer_is_what_is_opaque(tmp_path) -> None
     assert (read == 1).sum() == 16 and (read == 2).sum() == 25 and not read[20:25, 30:35].any()
 
 
+
+def test_a_sixteen_bit_mask_of_labels_is_read_by_its_values(tmp_path) -> None:
+    """Labelling tools save labels 1, 2, ... as 16-bit PNGs; OpenCV's grey read keeps their
+    high byte (0), and such a mask was refused as selecting nothing. 0/1 and 0/255 masks read
+    as one region; a full-range 16-bit mask (0/65535) as before."""
+    roi = Roi(0, 0, 50, 40)
+    labels = np.zeros((40, 50), np.uint16)
+    labels[2:6, 2:6], labels[20:25, 30:40] = 1, 2
+    cv2.imwrite(str(tmp_path / "labels16.png"), labels)
+    read = load_mask(tmp_path / "labels16.png", frame_size=(50, 40), roi=roi, labels=True)
+    assert (read == 1).sum() == 16 and (read == 2).sum() == 50
+    for top in (1, 255, 65535):
+        cv2.imwrite(str(tmp_path / f"binary{top}.png"), (labels > 0).astype(np.uint16) * top)
+        assert (load_mask(tmp_path / f"binary{top}.png", frame_size=(50, 40), roi=roi, labels=True) == 1).sum() == 66, top
+
+
 def test_masks_full_size_roi_size_rect_polygon_and_grid(tmp_path) -> None:
     roi = Roi(10, 10, 20, 10)
     full = np.zeros((40, 50), np.uint8)
