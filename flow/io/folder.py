@@ -83,8 +83,10 @@ class ImageFolderSource(FrameSource):
     def __init__(self, path: Path, *, roi: Roi | None = None, fps: float | None = None,
                  require_fps: bool = True) -> None:
         super().__init__(path)
-        self._files = sorted((p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
-                             key=name_order)
+        # Hidden files are never frames: macOS leaves "._NAME.png" beside every image it copies
+        # to a FAT or exFAT drive (its resource forks, not images).
+        self._files = sorted((p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES
+                              and not p.name.startswith(".") and p.is_file()), key=name_order)
         if not self._files:
             raise InputError(f"folder {str(self.path)!r} holds no images ({', '.join(IMAGE_SUFFIXES)})")
         if fps is None and require_fps:

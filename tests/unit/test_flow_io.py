@@ -196,9 +196,10 @@ def test_not_a_number_in_an_image_stops_the_run_naming_the_image(tmp_path) -> No
 def test_numbered_images_are_read_in_their_numbers_order(tmp_path) -> None:
     """Names numbered without zero padding (frame1 ... frame12): frame10 comes after frame9, not
     after frame1 (a plain name sort scrambled the time series and said nothing); padded names
-    keep their order."""
+    keep their order. Hidden files (macOS's "._" companions) are not frames."""
     for i in range(1, 13):
         cv2.imwrite(str(tmp_path / f"frame{i}.png"), np.full((6, 8), 10 * i, np.uint8))
+    (tmp_path / "._frame1.png").write_bytes(b"\0\5\26\7" + bytes(100))  # macOS's resource fork: hidden
     source = open_source(tmp_path, fps=10.0)
     assert [int(grey.mean()) for _, _, grey in source] == [10 * i for i in range(1, 13)]
     assert not any("numbers" in note for note in source.notes)
