@@ -100,6 +100,7 @@ class ImageFolderSource(FrameSource):
         if complaint:
             self.notes.append(f"image {self._files[0].name} (the first) decoded with a warning: {complaint}")
         self.height, self.width = first.shape[:2]
+        self._dtype = first.dtype  # one gain and one grey scale for all: one pixel type for all
         self._scan_folder()
         self.fps = float(fps) if fps else float("nan")
         self.header_frames = len(self._files)
@@ -142,10 +143,17 @@ class ImageFolderSource(FrameSource):
                 raise InputError(
                     f"image {file.name} is {image.shape[1]}x{image.shape[0]} but the first is "
                     f"{self.width}x{self.height}: all images must have the same size")
+            if image.dtype != self._dtype:
+                raise InputError(f"image {file.name} holds {image.dtype} pixels but the first holds {self._dtype}: "
+                                 "all images must have one pixel type (convert them alike)")
             time_s = index / self.fps if math.isfinite(self.fps) else float(index)
             grey = self._crop(image)
             if grey.dtype == np.float32 and not np.isfinite(grey).all():
-                bad = int(np.count_nonzero(~np.isfinite(grey)))
-                raise InputError(f"image {file.name} holds {bad} NaN or infinite pixel(s) in the measured area: "
-                                 "replace them (e.g. from their neighbours) or remove the image")
+                bad = ~np.isfinite(grey)
+                row, col = (int(i[0]) for i in np.nonzero(bad))
+                rows, cols = self._cut if self._cut is not None else (slice(0), slice(0))
+                x, y = self.roi.x + (cols.start or 0) + col, self.roi.y + (rows.start or 0) + row
+                raise InputError(f"image {file.name} holds {int(bad.sum())} NaN or infinite pixel(s) in the area "
+                                 f"read (the first at x={x}, y={y}): pass an --roi that leaves them out, or "
+                                 "replace them (e.g. from their neighbours)")
             yield index, time_s, grey

@@ -24,6 +24,17 @@ def mask_labels(image: np.ndarray) -> np.ndarray:
     return (image > 127).astype(np.int32)
 
 
+def _exif_orientation(path: Path) -> int | None:
+    """The EXIF orientation tag of an image file (None where it has none or Pillow cannot tell)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            return image.getexif().get(0x0112)
+    except (OSError, ValueError):  # Pillow cannot read it: no tag known
+        return None
+
+
 def read_mask_image(path: str | Path) -> tuple[np.ndarray | None, str, bool]:
     """A mask file's grey image (None where it cannot be decoded), the decoder's complaint, and
     whether its alpha channel decided it.
@@ -31,31 +42,29 @@ def read_mask_image(path: str | Path) -> tuple[np.ndarray | None, str, bool]:
     Image editors save a mask drawn on a transparent layer with an alpha channel, and the
     colour under the transparent pixels is whatever the editor keeps there (white, in some):
     read as grey alone, such a mask selected the whole frame. Transparent pixels (alpha below
-    128) are therefore not part of the mask; where the opaque pixels are all black (the region
-    drawn in the alpha channel alone), the opaque pixels are the mask. A 16-bit grey mask whose
-    values fit in 8 bits (a labelling tool's labels) is read by its values."""
+    128) are therefore not part of the mask. A 16-bit grey mask whose values fit in 8 bits (a
+    labelling tool's labels) is read by its values (OpenCV's grey read keeps the high byte).
+    Both come from the file's pixels as stored; one whose EXIF orientation would turn them is
+    refused (the grey read turns the image, the full read does not)."""
+    path = Path(path)
     image, complaint = read_image(path, cv2.IMREAD_GRAYSCALE)
     if image is None:
         return None, complaint, False
     full, _ = read_image(path, cv2.IMREAD_UNCHANGED)
-    if full is not None and full.ndim == 2 and full.dtype == np.uint16 and full.shape == image.shape \
-            and int(full.max()) <= 255:
-        # A 16-bit grey mask holding 8-bit values (labels 1, 2, ... as a labelling tool saves
-        # them, or 0/1, 0/255): the values themselves (OpenCV's grey read keeps the high byte,
-        # 0 for all of them).
-        return full.astype(np.uint8), complaint, False
-    if full is None or full.ndim != 3 or full.shape[2] != 4 or full.shape[:2] != image.shape:
-        return image, complaint, False
-    alpha = full[..., 3]
-    if alpha.dtype != np.uint8:
+    labels16 = full is not None and full.ndim == 2 and full.dtype == np.uint16 and int(full.max()) <= 255
+    alpha = full[..., 3] if full is not None and full.ndim == 3 and full.shape[2] == 4 else None
+    if alpha is not None and alpha.dtype != np.uint8:
         alpha = (alpha >> 8).astype(np.uint8) if alpha.dtype == np.uint16 else np.clip(alpha * 255.0, 0, 255).astype(np.uint8)
-    opaque = alpha >= 128
-    if opaque.all():
+    transparent = alpha is not None and bool((alpha < 128).any())
+    if not (labels16 or transparent):
         return image, complaint, False
-    drawn = np.where(opaque, image, 0).astype(np.uint8)
-    if not drawn.any():
-        drawn = np.where(opaque, 255, 0).astype(np.uint8)
-    return drawn, complaint, True
+    if _exif_orientation(path) not in (None, 1):
+        raise InputError(f"mask {path.name} has an EXIF orientation tag as well as "
+                         f"{'16-bit values' if labels16 else 'transparent pixels'}: save it turned as it "
+                         "should be, without the tag")
+    if labels16:
+        return full.astype(np.uint8), complaint, False
+    return np.where(alpha >= 128, image, 0).astype(np.uint8), complaint, True
 
 
 def load_mask(path: str | Path, *, frame_size: tuple[int, int], roi: Roi, what: str = "mask",

@@ -45,15 +45,15 @@ def test_image_folder_streams_grey_roi_with_fps_timestamps(tmp_path) -> None:
 
 def test_a_mask_drawn_on_a_transparent_layer_is_what_is_opaque(tmp_path) -> None:
     """Masks saved from an image editor's transparent layer: the transparent pixels are not the
-    mask whatever their colour (white under them selected the whole frame before), a region
-    drawn in the alpha channel alone (black paint) is its opaque pixels, labels keep their
-    grey values, and a mask without transparency reads as before."""
+    mask whatever their colour (white under them selected the whole frame before), labels keep
+    their grey values, and a mask without transparency reads as before. Black paint on a
+    transparent layer selects nothing (is the paint the member, or the rest?): refused as an
+    empty mask, as before."""
     roi = Roi(0, 0, 50, 40)
     drawn = np.zeros((40, 50), bool)
     drawn[12:15, 11:16] = True
     cases = {
         "white_under": (np.dstack([np.full((40, 50), 255, np.uint8)] * 3 + [drawn.astype(np.uint8) * 255]), drawn),
-        "alpha_only": (np.dstack([np.zeros((40, 50), np.uint8)] * 3 + [drawn.astype(np.uint8) * 255]), drawn),
         "opaque": (np.dstack([drawn.astype(np.uint8) * 255] * 3 + [np.full((40, 50), 255, np.uint8)]), drawn),
     }
     for name, (image, expected) in cases.items():
@@ -69,6 +69,15 @@ def test_a_mask_drawn_on_a_transparent_layer_is_what_is_opaque(tmp_path) -> None
     cv2.imwrite(str(tmp_path / "labels.png"), np.dstack([labels] * 3 + [alpha]))
     read = load_mask(tmp_path / "labels.png", frame_size=(50, 40), roi=roi, labels=True)
     assert (read == 1).sum() == 16 and (read == 2).sum() == 25 and not read[20:25, 30:35].any()
+    cv2.imwrite(str(tmp_path / "black.png"), np.dstack([np.zeros((40, 50), np.uint8)] * 3 + [drawn.astype(np.uint8) * 255]))
+    assert not load_mask(tmp_path / "black.png", frame_size=(50, 40), roi=roi).any()
+    from PIL import Image
+
+    turned = Image.Exif()
+    turned[0x0112] = 3  # EXIF orientation: turned by 180 degrees
+    Image.fromarray(cases["white_under"][0][..., [2, 1, 0, 3]], "RGBA").save(tmp_path / "turned.png", exif=turned.tobytes())
+    with pytest.raises(InputError, match="mask turned.png has an EXIF orientation tag as well as transparent pixels"):
+        load_mask(tmp_path / "turned.png", frame_size=(50, 40), roi=roi)
 
 
 
@@ -189,8 +198,19 @@ def test_not_a_number_in_an_image_stops_the_run_naming_the_image(tmp_path) -> No
     image[5, 6] = np.inf
     cv2.imwrite(str(tmp_path / "b.tif"), image)
     source = open_source(tmp_path, fps=10.0)
-    with pytest.raises(InputError, match=r"image b\.tif holds 2 NaN or infinite pixel\(s\)"):
+    with pytest.raises(InputError, match=r"image b\.tif holds 2 NaN or infinite pixel\(s\) in the area read "
+                                         r"\(the first at x=4, y=3\): pass an --roi that leaves them out"):
         list(source)
+    assert len(list(open_source(tmp_path, fps=10.0, roi=Roi(8, 0, 8, 12)))) == 2  # an ROI without them
+
+
+def test_an_image_of_another_pixel_type_than_the_first_stops_the_run(tmp_path) -> None:
+    """One gain from the first image serves every frame only if all share its pixel type: a
+    0-1 float frame after 16-bit ones came out as grey 0.03."""
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((6, 8), 3000, np.uint16))
+    cv2.imwrite(str(tmp_path / "b.tif"), np.full((6, 8), 0.5, np.float32))
+    with pytest.raises(InputError, match="image b.tif holds float32 pixels but the first holds uint16"):
+        list(open_source(tmp_path, fps=10.0))
 
 
 def test_numbered_images_are_read_in_their_numbers_order(tmp_path) -> None:
