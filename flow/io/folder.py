@@ -7,7 +7,6 @@ Every image's header and structure are checked before the first frame is measure
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,14 +15,12 @@ import cv2
 import numpy as np
 
 from flow.io.errors import InputError
-from flow.io.frames import FrameSource, Roi, significant_bits
+from flow.io.frames import ImageSequence, Roi
 from flow.io.imagefiles import because, check_image_file, read_image
 
 __all__ = ["IMAGE_SUFFIXES", "ImageFolderSource"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
-#: Bits a float32 grey keeps (its significand): the depth of floating-point and 32-bit data measured.
-FLOAT_BITS = 24
 # Image formats that keep what the sensor recorded (WebP may be either: taken as lossy).
 LOSSLESS_IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
 
@@ -63,7 +60,7 @@ def numbering_note(files: list[Path]) -> str | None:
             "--fps, as if none were missing")
 
 
-class ImageFolderSource(FrameSource):
+class ImageFolderSource(ImageSequence):
     """A folder of images (in name order, see :func:`name_order`), one frame each.
 
     Parameters
@@ -99,22 +96,12 @@ class ImageFolderSource(FrameSource):
                              "remove or replace it")
         if complaint:
             self.notes.append(f"image {self._files[0].name} (the first) decoded with a warning: {complaint}")
-        self.height, self.width = first.shape[:2]
-        self._dtype = first.dtype  # one gain and one grey scale for all: one pixel type for all
+        self._take_first(first, fps, "images")
         self._scan_folder()
-        self.fps = float(fps) if fps else float("nan")
         self.header_frames = len(self._files)
         numbering = numbering_note(self._files)
         if numbering:
             self.notes.append(numbering)
-        if first.dtype == np.uint16:
-            self._keep_depth(first, significant_bits(first), "16-bit images")
-        elif first.dtype != np.uint8:
-            # Floating-point (TIFF's SampleFormat 3) or 32-bit integer images, as DIC tools and
-            # scientific cameras write them: one gain like 16-bit data's, measured as float32.
-            kind = "floating-point" if first.dtype.kind == "f" else "integer"
-            self._keep_depth(first, min(FLOAT_BITS, 8 * first.dtype.itemsize),
-                             f"{8 * first.dtype.itemsize}-bit {kind} images")
         self._set_roi(roi)
 
     @property
@@ -139,21 +126,4 @@ class ImageFolderSource(FrameSource):
             image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
             if image is None:
                 raise InputError(f"image {str(file)!r} cannot be read: remove or replace it")
-            if image.shape[:2] != (self.height, self.width):
-                raise InputError(
-                    f"image {file.name} is {image.shape[1]}x{image.shape[0]} but the first is "
-                    f"{self.width}x{self.height}: all images must have the same size")
-            if image.dtype != self._dtype:
-                raise InputError(f"image {file.name} holds {image.dtype} pixels but the first holds {self._dtype}: "
-                                 "all images must have one pixel type (convert them alike)")
-            time_s = index / self.fps if math.isfinite(self.fps) else float(index)
-            grey = self._crop(image)
-            if grey.dtype == np.float32 and not np.isfinite(grey).all():
-                bad = ~np.isfinite(grey)
-                row, col = (int(i[0]) for i in np.nonzero(bad))
-                rows, cols = self._cut if self._cut is not None else (slice(0), slice(0))
-                x, y = self.roi.x + (cols.start or 0) + col, self.roi.y + (rows.start or 0) + row
-                raise InputError(f"image {file.name} holds {int(bad.sum())} NaN or infinite pixel(s) in the area "
-                                 f"read (the first at x={x}, y={y}): pass an --roi that leaves them out, or "
-                                 "replace them (e.g. from their neighbours)")
-            yield index, time_s, grey
+            yield index, self._time(index), self._checked(image, f"image {file.name}")

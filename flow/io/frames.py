@@ -20,7 +20,7 @@ import numpy as np
 
 from flow.io.errors import InputError
 
-__all__ = ["FPS_RANGE", "FrameSource", "Roi", "as_uint8", "check_fps", "copied_share", "deep_image_gain",
+__all__ = ["FLOAT_BITS", "FPS_RANGE", "FrameSource", "ImageSequence", "Roi", "as_uint8", "check_fps", "copied_share", "deep_image_gain",
            "significant_bits", "to_grey", "unchanged_windows"]
 
 # Frames in lossless files can still be a lossy codec's output (a phone video exported to PNG or
@@ -300,3 +300,52 @@ class FrameSource:
         files have no stamps to check: their times stand (a video's: :class:`~flow.io.video.VideoSource`).
         """
         return np.asarray(time_s, np.float64), []
+
+
+#: Bits a float32 grey keeps (its significand): the depth of floating-point and 32-bit data measured.
+FLOAT_BITS = 24
+
+
+class ImageSequence(FrameSource):
+    """The part of an image-based reader (a folder of images, a TIFF stack) that is the same for
+    both: images carry no time stamps (``time_s`` = index / ``fps``), one pixel type and size
+    for all, deeper than 8 bits measured at full depth with one gain from the first image, and
+    every image checked as it is read (size, pixel type, NaN)."""
+
+    def _take_first(self, first: np.ndarray, fps: float | None, what: str) -> None:
+        """Size, pixel type and depth from the first image (``what``: "images", "TIFF pages")."""
+        self.height, self.width = first.shape[:2]
+        self._dtype = first.dtype  # one gain and one grey scale for all: one pixel type for all
+        self.fps = float(fps) if fps else float("nan")
+        if first.dtype == np.uint16:
+            self._keep_depth(first, significant_bits(first), f"16-bit {what}")
+        elif first.dtype != np.uint8:
+            # Floating-point (TIFF's SampleFormat 3) or 32-bit integer images, as DIC tools and
+            # scientific cameras write them: one gain like 16-bit data's, measured as float32.
+            kind = "floating-point" if first.dtype.kind == "f" else "integer"
+            self._keep_depth(first, min(FLOAT_BITS, 8 * first.dtype.itemsize),
+                             f"{8 * first.dtype.itemsize}-bit {kind} {what}")
+
+    def _time(self, index: int) -> float:
+        return index / self.fps if math.isfinite(self.fps) else float(index)
+
+    def _checked(self, image: np.ndarray, name: str) -> np.ndarray:
+        """The grey ROI crop of ``image`` (``name``: "image f1.tif", "page 3 of s.tif" in
+        messages), refused where its size or pixel type is not the first's or where the area
+        read holds NaN or infinite values."""
+        if image.shape[:2] != (self.height, self.width):
+            raise InputError(f"{name} is {image.shape[1]}x{image.shape[0]} but the first is "
+                             f"{self.width}x{self.height}: all images must have the same size")
+        if image.dtype != self._dtype:
+            raise InputError(f"{name} holds {image.dtype} pixels but the first holds {self._dtype}: "
+                             "all images must have one pixel type (convert them alike)")
+        grey = self._crop(image)
+        if grey.dtype == np.float32 and not np.isfinite(grey).all():
+            bad = ~np.isfinite(grey)
+            row, col = (int(i[0]) for i in np.nonzero(bad))
+            rows, cols = self._cut if self._cut is not None else (slice(0), slice(0))
+            x, y = self.roi.x + (cols.start or 0) + col, self.roi.y + (rows.start or 0) + row
+            raise InputError(f"{name} holds {int(bad.sum())} NaN or infinite pixel(s) in the area read (the "
+                             f"first at x={x}, y={y}): pass an --roi that leaves them out, or replace them "
+                             "(e.g. from their neighbours)")
+        return grey

@@ -2,6 +2,7 @@
 one per kind of input (after imageio v3's ``imopen``).
 
 * a folder: :class:`~flow.io.folder.ImageFolderSource` (images in name order);
+* a TIFF file of several pages (a stack): :class:`~flow.io.tiffstack.TiffStackSource`;
 * a Photron ``.cih``/``.cihx`` or a Phantom ``.cine``: :class:`~flow.io.camera.CameraSource`;
 * anything else: :class:`~flow.io.video.VideoSource` (any video OpenCV's ffmpeg decodes).
 
@@ -18,6 +19,7 @@ from flow.io.camera import CameraSource, open_camera_file
 from flow.io.errors import InputError
 from flow.io.folder import ImageFolderSource
 from flow.io.frames import FrameSource, Roi, check_fps
+from flow.io.tiffstack import TiffStackSource, is_tiff_stack
 from flow.io.video import VideoSource
 
 __all__ = ["open_source"]
@@ -30,7 +32,8 @@ def open_source(path: str | Path, *, roi: Roi | None = None, fps: float | None =
     Parameters
     ----------
     path : str or Path
-        A video file, a folder of images (sorted by name) or a high-speed camera recording.
+        A video file, a folder of images (in name order), a TIFF stack or a high-speed camera
+        recording.
     roi : Roi, optional
         Crop window in full-sensor pixels; the whole frame if omitted.
     fps : float, optional
@@ -57,6 +60,8 @@ def open_source(path: str | Path, *, roi: Roi | None = None, fps: float | None =
     check_fps(fps)
     if path.is_dir():
         return ImageFolderSource(path, roi=roi, fps=fps, require_fps=require_fps)
+    if is_tiff_stack(path):
+        return TiffStackSource(path, roi=roi, fps=fps, require_fps=require_fps)
     camera = open_camera_file(path)
     if camera is not None:
         return CameraSource(path, camera, roi=roi, fps=fps)

@@ -711,6 +711,21 @@ def test_floating_point_images_are_read_as_their_8_bit_twins(tmp_path, capsys) -
     assert sorted(p.name for p in tmp_path.iterdir()) == ["png", "png.csv", "png.json", "tif", "tif.csv", "tif.json"]
 
 
+def test_a_tiff_stack_is_measured_frame_by_frame(tmp_path) -> None:
+    """A 16-bit multi-page TIFF (ImageJ's stacks, scientific cameras): one frame per page, read
+    as its shifts; before, OpenCV's video reader measured its first page alone (one frame)."""
+    shifts = [0.0, 0.5, 1.0, 1.5, 2.0]
+    stack = tmp_path / "stack.tif"
+    assert cv2.imwritemulti(str(stack), [np.rint(1000 + 10 * texture(shift)).astype(np.uint16) for shift in shifts])
+    out = tmp_path / "o.csv"
+    assert main(["track", str(stack), "--fps", "50", "--rect", "40,30,80,60", "--out", str(out), "--no-progress"]) == 0
+    rows = read_csv(out)
+    assert [float(r["time_s"]) for r in rows] == [0.0, 0.02, 0.04, 0.06, 0.08]
+    assert np.allclose([float(r["dx_px"]) for r in rows], shifts, atol=0.02), rows
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["input"]["bit_depth"] > 8 and any(note.startswith("16-bit TIFF pages") for note in meta["notes"])
+
+
 def test_deep_data_is_measured_at_full_depth(tmp_path) -> None:
     """A faint texture in 12-bit data (+-11 counts, +-0.6 grey levels on the 8-bit scale):
     the default method reads it at full depth, more accurately than from the same frames

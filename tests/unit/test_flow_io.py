@@ -234,6 +234,53 @@ def test_images_whose_numbers_do_not_go_up_by_one_are_noted(tmp_path, numbers, s
     assert (notes == []) if said is None else (len(notes) == 1 and said in notes[0]), notes
 
 
+@pytest.mark.parametrize("kind", ["uint8", "uint16", "float32", "bgr", "pillow-16-bit"])
+def test_a_tiff_stack_is_read_page_by_page(tmp_path, kind) -> None:
+    """A multi-page TIFF (ImageJ's, a scientific camera's) is one frame per page, read as the
+    same pages saved as a folder of images read (OpenCV's video reader took its first page
+    only: one frame, nothing said). Its pages carry no time stamps: --fps is asked for."""
+    from PIL import Image
+
+    rng = np.random.default_rng(6)
+    top = {"uint8": 255, "uint16": 4000, "float32": 1, "bgr": 255, "pillow-16-bit": 4000}[kind]
+    shape = (3, 12, 16, 3) if kind == "bgr" else (3, 12, 16)
+    pages = (rng.uniform(0, top, shape)).astype(np.float32 if kind == "float32" else
+                                                np.uint16 if "16" in kind else np.uint8)
+    stack = tmp_path / "stack.tif"
+    if kind == "pillow-16-bit":  # big-endian 16-bit pages, as some tools write them
+        images = [Image.frombytes("I;16B", (16, 12), page.astype(">u2").tobytes()) for page in pages]
+        images[0].save(stack, save_all=True, append_images=images[1:])
+    else:
+        assert cv2.imwritemulti(str(stack), list(pages))
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    for i, page in enumerate(pages):
+        cv2.imwrite(str(folder / f"{i}.tif"), page)
+    source = open_source(stack, fps=10.0)
+    frames = [(t, grey) for _, t, grey in source]
+    twins = [grey for _, _, grey in open_source(folder, fps=10.0)]
+    assert source.header_frames == 3 and source.lossless and [t for t, _ in frames] == [0.0, 0.1, 0.2]
+    assert all(np.array_equal(grey, twin) for (_, grey), twin in zip(frames, twins, strict=True))
+    assert source.bit_depth == {"uint8": 8, "bgr": 8, "uint16": 12, "pillow-16-bit": 12, "float32": 24}[kind]
+    with pytest.raises(InputError, match="TIFF stack of images without timestamps: pass --fps"):
+        open_source(stack)
+
+
+def test_a_tiff_stack_cut_short_or_of_mixed_pages_is_refused_before_the_first_frame(tmp_path) -> None:
+    pages = [np.full((12, 16), 40 * i, np.uint8) for i in range(4)]
+    whole = tmp_path / "whole.tif"
+    cv2.imwritemulti(str(whole), pages)
+    for cut in (10, 200):
+        (tmp_path / "cut.tif").write_bytes(whole.read_bytes()[:-cut])
+        with pytest.raises(InputError, match="lies past the file's end"):
+            open_source(tmp_path / "cut.tif", fps=10.0)
+    cv2.imwritemulti(str(tmp_path / "mixed.tif"), [pages[0], np.zeros((10, 16), np.uint8)])
+    with pytest.raises(InputError, match="page 1 of mixed.tif is 16x10 but the first is 16x12"):
+        open_source(tmp_path / "mixed.tif", fps=10.0)
+    cv2.imwrite(str(tmp_path / "one.tif"), pages[1])  # one page: an image, read as before
+    assert type(open_source(tmp_path / "one.tif")).__name__ == "VideoSource"
+
+
 def test_as_uint8_and_significant_bits() -> None:
     image = np.array([[-3.0, 0.4, 0.6], [254.5, 255.2, 900.0]], np.float32)
     assert as_uint8(image).tolist() == [[0, 0, 1], [254, 255, 255]]
