@@ -16,7 +16,15 @@ import numpy as np
 
 from flow.io.errors import InputError
 from flow.io.frames import ImageSequence, Roi
-from flow.io.imagefiles import because, check_image_file, read_image
+from flow.io.imagefiles import (
+    ORIENTATION_DEGREES,
+    SWAPPING_ORIENTATIONS,
+    because,
+    check_image_file,
+    exif_orientation,
+    oriented,
+    read_image,
+)
 
 __all__ = ["IMAGE_SUFFIXES", "ImageFolderSource"]
 
@@ -96,6 +104,17 @@ class ImageFolderSource(ImageSequence):
                              "remove or replace it")
         if complaint:
             self.notes.append(f"image {self._files[0].name} (the first) decoded with a warning: {complaint}")
+        # Each image as a viewer shows it (its EXIF orientation applied, as for a video's display
+        # rotation): a portrait photo is stored landscape, and its mask and --rect are drawn on
+        # what is shown.
+        self._orientations = [exif_orientation(self._files[0])]
+        first = oriented(first, self._orientations[0])
+        if self._orientations[0] != 1:
+            self.rotation_deg = ORIENTATION_DEGREES.get(self._orientations[0], 0)
+            self.notes.append(f"image {self._files[0].name} carries the EXIF orientation {self._orientations[0]}: the "
+                              "images are measured as shown; masks, --rect, --roi and --between are read on the "
+                              "shown images" + (" (a mask drawn on the stored, unturned image is turned to match)"
+                                                if self.rotation_deg in (90, 270) else ""))
         self._take_first(first, fps, "images")
         self._scan_folder()
         self.header_frames = len(self._files)
@@ -114,6 +133,9 @@ class ImageFolderSource(ImageSequence):
         measured, so that a truncated or mis-sized image stops the run at once, not hours into it."""
         for file in self._files[1:]:
             size = check_image_file(file)
+            self._orientations.append(exif_orientation(file))
+            if self._orientations[-1] in SWAPPING_ORIENTATIONS:
+                size = size[::-1]
             if size != (self.width, self.height):
                 raise InputError(f"image {file.name} is {size[0]}x{size[1]} but the first is "
                                  f"{self.width}x{self.height}: all images must have the same size")
@@ -126,4 +148,5 @@ class ImageFolderSource(ImageSequence):
             image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
             if image is None:
                 raise InputError(f"image {str(file)!r} cannot be read: remove or replace it")
+            image = oriented(image, self._orientations[index])
             yield index, self._time(index), self._checked(image, f"image {file.name}")

@@ -197,3 +197,46 @@ def check_image_file(path: Path) -> tuple[int, int]:
     if problem:
         raise InputError(f"image {str(path)!r} cannot be read ({problem}): remove or replace it")
     return size
+
+
+#: EXIF orientation tag (0x0112): how a viewer turns the stored pixels to show them (1: as
+#: stored; 2-8: mirrored and/or turned). Cameras and phones store a portrait photo's pixels
+#: landscape with 6 or 8.
+EXIF_ORIENTATION = 0x0112
+#: Orientations that swap the image's width and height.
+SWAPPING_ORIENTATIONS = (5, 6, 7, 8)
+#: Orientation -> the clockwise display rotation, degrees (the mirrored ones: none).
+ORIENTATION_DEGREES = {3: 180, 6: 90, 8: 270}
+
+
+def exif_orientation(path: Path) -> int:
+    """The EXIF orientation of the image file ``path`` (1 where it has none or it cannot be
+    read; only the header is read)."""
+    from PIL import Image
+
+    try:
+        with _pillow_quiet(), Image.open(path) as image:
+            tag = image.getexif().get(EXIF_ORIENTATION, 1)
+    except Exception:  # noqa: BLE001 - Pillow raises many kinds on odd headers: no tag known
+        return 1
+    return tag if isinstance(tag, int) and 1 <= tag <= 8 else 1
+
+
+def oriented(image: np.ndarray, orientation: int) -> np.ndarray:
+    """``image`` (H x W or H x W x C, any dtype) turned as a viewer shows it under the EXIF
+    ``orientation`` (as OpenCV's and Pillow's readers turn it)."""
+    if orientation == 2:
+        image = image[:, ::-1]
+    elif orientation == 3:
+        image = image[::-1, ::-1]
+    elif orientation == 4:
+        image = image[::-1]
+    elif orientation == 5:
+        image = image.swapaxes(0, 1)
+    elif orientation == 6:
+        image = image[::-1].swapaxes(0, 1)
+    elif orientation == 7:
+        image = image[::-1, ::-1].swapaxes(0, 1)
+    elif orientation == 8:
+        image = image[:, ::-1].swapaxes(0, 1)
+    return np.ascontiguousarray(image)

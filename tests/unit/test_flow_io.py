@@ -281,6 +281,31 @@ def test_a_tiff_stack_cut_short_or_of_mixed_pages_is_refused_before_the_first_fr
     assert type(open_source(tmp_path / "one.tif")).__name__ == "VideoSource"
 
 
+def test_images_are_measured_as_shown_under_their_exif_orientation(tmp_path) -> None:
+    """A portrait photo is stored landscape with an EXIF orientation; a viewer shows it turned,
+    and its mask and --rect are drawn on what is shown. The folder's frames are turned so
+    (before, they were measured as stored, and a mask drawn on the shown image was refused as
+    mis-sized); each orientation matches what OpenCV's and Pillow's readers show."""
+    from PIL import Image, ImageOps
+
+    rng = np.random.default_rng(7)
+    stored = rng.integers(0, 255, (12, 20)).astype(np.uint8)
+    for tag in range(1, 9):
+        folder = tmp_path / str(tag)
+        folder.mkdir()
+        exif = Image.Exif()
+        exif[0x0112] = tag
+        for i in range(2):
+            Image.fromarray(stored).save(folder / f"f{i}.png", exif=exif.tobytes())
+        source = open_source(folder, fps=10.0)
+        with Image.open(folder / "f0.png") as image:
+            shown = np.asarray(ImageOps.exif_transpose(image))
+        assert np.array_equal(next(iter(source))[2], shown), tag
+        assert (source.width, source.height) == (shown.shape[1], shown.shape[0])
+        assert source.rotation_deg == {3: 180, 6: 90, 8: 270}.get(tag, 0)
+        assert any("EXIF orientation" in note for note in source.notes) == (tag != 1)
+
+
 def test_as_uint8_and_significant_bits() -> None:
     image = np.array([[-3.0, 0.4, 0.6], [254.5, 255.2, 900.0]], np.float32)
     assert as_uint8(image).tolist() == [[0, 0, 1], [254, 255, 255]]
