@@ -64,8 +64,8 @@ def numbering_note(files: list[Path]) -> str | None:
     first = files[int(np.argmax(steps != 1))].name
     missing, repeated = int(np.sum(np.maximum(steps - 1, 0))), int(np.sum(steps <= 0))
     odd = " and ".join(([f"skip {missing} value(s)"] if missing else []) + ([f"repeat {repeated} time(s)"] if repeated else []))
-    return (f"the images' numbers {odd} (first after {first}; {where}): time_s counts one frame per image at "
-            "--fps, as if none were missing")
+    return (f"the numbers in the images' names {odd} (first after {first}; {where}): time_s counts one frame "
+            "per image at --fps; where frames are missing there, the times after them are early")
 
 
 class ImageFolderSource(ImageSequence):

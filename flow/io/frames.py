@@ -3,8 +3,9 @@
 brought to it by one gain for the whole sequence).
 
 The readers, one per kind of input (:mod:`flow.io.video`, :mod:`flow.io.folder`,
-:mod:`flow.io.camera`), subclass :class:`FrameSource`; :func:`flow.io.source.open_source`
-picks the one for a path.
+:mod:`flow.io.tiffstack`, :mod:`flow.io.camera`), subclass :class:`FrameSource` (the folder and
+the stack through :class:`ImageSequence`, what images without time stamps share);
+:func:`flow.io.source.open_source` picks the one for a path.
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ import numpy as np
 
 from flow.io.errors import InputError
 
-__all__ = ["FLOAT_BITS", "FPS_RANGE", "FrameSource", "ImageSequence", "Roi", "as_uint8", "check_fps", "copied_share", "deep_image_gain",
-           "significant_bits", "to_grey", "unchanged_windows"]
+__all__ = ["FLOAT_BITS", "FPS_RANGE", "FrameSource", "ImageSequence", "Roi", "as_uint8", "check_fps",
+           "copied_share", "deep_image_gain", "significant_bits", "to_grey", "unchanged_windows"]
 
 # Frames in lossless files can still be a lossy codec's output (a phone video exported to PNG or
 # TIFF images, as many DIC tools want their input). Such a codec leaves what a camera's frames never

@@ -234,24 +234,38 @@ def test_images_whose_numbers_do_not_go_up_by_one_are_noted(tmp_path, numbers, s
     assert (notes == []) if said is None else (len(notes) == 1 and said in notes[0]), notes
 
 
-@pytest.mark.parametrize("kind", ["uint8", "uint16", "float32", "bgr", "pillow-16-bit"])
-def test_a_tiff_stack_is_read_page_by_page(tmp_path, kind) -> None:
-    """A multi-page TIFF (ImageJ's, a scientific camera's) is one frame per page, read as the
-    same pages saved as a folder of images read (OpenCV's video reader took its first page
-    only: one frame, nothing said). Its pages carry no time stamps: --fps is asked for."""
-    from PIL import Image
+_STACKS = {  # name: (dtype, top value, colour, how it is written)
+    "opencv-8-bit": (np.uint8, 255, False, "opencv"),  # OpenCV writes LZW: decoded by Pillow
+    "opencv-16-bit": (np.uint16, 4000, False, "opencv"),
+    "opencv-colour": (np.uint8, 255, True, "opencv"),
+    "float32": (np.float32, 1, False, "tifffile"),
+    "float64": (np.float64, 1, False, "tifffile"),
+    "uint32": (np.uint32, 4_000_000_000, False, "tifffile"),
+    "16-bit-colour": (np.uint16, 60000, True, "tifffile"),
+    "big-endian-bigtiff": (np.uint16, 4000, False, "bigtiff"),
+    "imagej-over-4-GB": (np.uint16, 4000, False, "imagej-truncate"),  # one page listed, images=N
+    "zlib": (np.uint16, 4000, False, "zlib"),
+}
 
+
+@pytest.mark.parametrize("kind", sorted(_STACKS))
+def test_a_tiff_stack_is_read_frame_by_frame(tmp_path, kind) -> None:
+    """A multi-page TIFF (ImageJ's, a scientific camera's) is one frame per page, read as the
+    same frames saved as a folder of images read (OpenCV's video reader took its first page
+    only: one frame, nothing said). Its frames carry no time stamps: --fps is asked for."""
+    import tifffile
+
+    dtype, top, colour, how = _STACKS[kind]
     rng = np.random.default_rng(6)
-    top = {"uint8": 255, "uint16": 4000, "float32": 1, "bgr": 255, "pillow-16-bit": 4000}[kind]
-    shape = (3, 12, 16, 3) if kind == "bgr" else (3, 12, 16)
-    pages = (rng.uniform(0, top, shape)).astype(np.float32 if kind == "float32" else
-                                                np.uint16 if "16" in kind else np.uint8)
+    pages = rng.uniform(0, top, (5, 12, 16, 3) if colour else (5, 12, 16)).astype(dtype)
     stack = tmp_path / "stack.tif"
-    if kind == "pillow-16-bit":  # big-endian 16-bit pages, as some tools write them
-        images = [Image.frombytes("I;16B", (16, 12), page.astype(">u2").tobytes()) for page in pages]
-        images[0].save(stack, save_all=True, append_images=images[1:])
-    else:
+    if how == "opencv":
         assert cv2.imwritemulti(str(stack), list(pages))
+    else:
+        extra = {"tifffile": {}, "bigtiff": {"bigtiff": True, "byteorder": ">"}, "zlib": {"compression": "zlib"},
+                 "imagej-truncate": {"imagej": True, "truncate": True}}[how]
+        rgb = pages[..., ::-1] if colour else pages  # stored RGB, as OpenCV's BGR turned
+        tifffile.imwrite(stack, rgb, photometric="rgb" if colour else "minisblack", **extra)
     folder = tmp_path / "folder"
     folder.mkdir()
     for i, page in enumerate(pages):
@@ -259,9 +273,10 @@ def test_a_tiff_stack_is_read_page_by_page(tmp_path, kind) -> None:
     source = open_source(stack, fps=10.0)
     frames = [(t, grey) for _, t, grey in source]
     twins = [grey for _, _, grey in open_source(folder, fps=10.0)]
-    assert source.header_frames == 3 and source.lossless and [t for t, _ in frames] == [0.0, 0.1, 0.2]
-    assert all(np.array_equal(grey, twin) for (_, grey), twin in zip(frames, twins, strict=True))
-    assert source.bit_depth == {"uint8": 8, "bgr": 8, "uint16": 12, "pillow-16-bit": 12, "float32": 24}[kind]
+    assert type(source).__name__ == "TiffStackSource" and source.header_frames == 5 and source.lossless
+    assert np.allclose([t for t, _ in frames], [0.0, 0.1, 0.2, 0.3, 0.4])
+    assert all(np.array_equal(grey, twin) for (_, grey), twin in zip(frames, twins, strict=True)), kind
+    assert source.bit_depth == source.bit_depth and (source.bit_depth > 8) == (dtype != np.uint8)
     with pytest.raises(InputError, match="TIFF stack of images without timestamps: pass --fps"):
         open_source(stack)
 
@@ -275,10 +290,20 @@ def test_a_tiff_stack_cut_short_or_of_mixed_pages_is_refused_before_the_first_fr
         with pytest.raises(InputError, match="lies past the file's end"):
             open_source(tmp_path / "cut.tif", fps=10.0)
     cv2.imwritemulti(str(tmp_path / "mixed.tif"), [pages[0], np.zeros((10, 16), np.uint8)])
-    with pytest.raises(InputError, match="page 1 of mixed.tif is 16x10 but the first is 16x12"):
+    with pytest.raises(InputError, match="page 1 of mixed.tif is 16x10 uint8 but the first is 16x12 uint8"):
         open_source(tmp_path / "mixed.tif", fps=10.0)
     cv2.imwrite(str(tmp_path / "one.tif"), pages[1])  # one page: an image, read as before
     assert type(open_source(tmp_path / "one.tif")).__name__ == "VideoSource"
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "imagej.tif", np.zeros((5, 12, 16), np.uint16), imagej=True, truncate=True)
+    (tmp_path / "imagej_cut.tif").write_bytes((tmp_path / "imagej.tif").read_bytes()[:-100])
+    with pytest.raises(InputError, match="lists 5 ImageJ images but holds 1"):
+        open_source(tmp_path / "imagej_cut.tif", fps=10.0)
+    tifffile.imwrite(tmp_path / "hyper.tif", np.zeros((3, 2, 12, 16), np.uint8), imagej=True,
+                     metadata={"axes": "TCYX"})
+    with pytest.raises(InputError, match="hyper.tif is a hyperstack"):
+        open_source(tmp_path / "hyper.tif", fps=10.0)
 
 
 def test_images_are_measured_as_shown_under_their_exif_orientation(tmp_path) -> None:
