@@ -9,6 +9,7 @@ with a calibration they are carried into the undistorted frames, where the flow 
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -20,11 +21,12 @@ from flow.io.source import open_source
 from flow.options import BackgroundOptions, RegionOptions, SourceOptions
 
 
-def source_from(options: SourceOptions, *, need_time: bool = True) -> FrameSource:
-    """The frames the command's source options name (``--roi``, ``--fps``, ``--allow-truncated``)."""
+def source_from(options: SourceOptions, *, need_time: bool = True, others: tuple[Path, ...] = ()) -> FrameSource:
+    """The frames the command's source options name (``--roi``, ``--fps``, ``--allow-truncated``);
+    ``others``: the run's other input files, never frames of an image folder."""
     roi = Roi.parse(options.roi) if options.roi else None
     return open_source(options.input, roi=roi, fps=options.fps, require_fps=need_time,
-                       allow_truncated=options.allow_truncated)
+                       allow_truncated=options.allow_truncated, exclude=others)
 
 
 def video_origin(options: SourceOptions) -> tuple[int, int]:

@@ -290,7 +290,7 @@ def _set_up(options: TrackOptions, notes: list[str], name: str, sparse: bool) ->
     """Open the source, undistort, scale, mask and background, in this order."""
     from flow.measure import poi
 
-    source = inputs.source_from(options.source)
+    source = inputs.source_from(options.source, others=tuple(path for _, path in options.input_paths()))
     undistort, calibration = inputs.undistorter(options.source, source)
     calibration_info = inputs.calibration_summary(options.source, calibration)
     scale = measurement_scale(options.scale, calibration_info, tuple(source.size))

@@ -83,15 +83,22 @@ class ImageFolderSource(ImageSequence):
     require_fps : bool
         False lets the folder go without ``fps`` (tools that need no time, e.g. calibration);
         its ``time_s`` is then the frame index.
+    exclude : tuple of Path
+        Files of the run's other inputs, not frames where the folder holds them.
     """
 
     def __init__(self, path: Path, *, roi: Roi | None = None, fps: float | None = None,
-                 require_fps: bool = True) -> None:
+                 require_fps: bool = True, exclude: tuple[Path, ...] = ()) -> None:
         super().__init__(path)
         # Hidden files are never frames: macOS leaves "._NAME.png" beside every image it copies
-        # to a FAT or exFAT drive (its resource forks, not images).
-        self._files = sorted((p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES
-                              and not p.name.startswith(".") and p.is_file()), key=name_order)
+        # to a FAT or exFAT drive (its resource forks, not images). Nor are the run's other
+        # inputs (``exclude``: a mask kept beside the frames it was drawn on).
+        others = {Path(p).resolve() for p in exclude}
+        images = [p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES
+                  and not p.name.startswith(".") and p.is_file()]
+        self._files = sorted((p for p in images if p.resolve() not in others), key=name_order)
+        for left in sorted(p.name for p in images if p.resolve() in others):
+            self.notes.append(f"{left} in the folder is one of the run's other inputs (a mask): not a frame")
         if not self._files:
             raise InputError(f"folder {str(self.path)!r} holds no images ({', '.join(IMAGE_SUFFIXES)})")
         if fps is None and require_fps:

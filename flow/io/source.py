@@ -26,7 +26,8 @@ __all__ = ["open_source"]
 
 
 def open_source(path: str | Path, *, roi: Roi | None = None, fps: float | None = None,
-                require_fps: bool = True, allow_truncated: bool = False) -> FrameSource:
+                require_fps: bool = True, allow_truncated: bool = False,
+                exclude: tuple[Path, ...] = ()) -> FrameSource:
     """The reader of ``path``'s frames, its header read and its first frame checked.
 
     Parameters
@@ -47,6 +48,8 @@ def open_source(path: str | Path, *, roi: Roi | None = None, fps: float | None =
         A video that stops decoding well before its container's duration is truncated:
         iterating to its end raises :class:`InputError` unless this is True, in which case it
         warns and the decoded frames stand.
+    exclude : tuple of Path
+        The run's other input files (masks): never frames of a folder that holds them.
 
     Raises
     ------
@@ -59,7 +62,7 @@ def open_source(path: str | Path, *, roi: Roi | None = None, fps: float | None =
         raise InputError(f"input {str(path)!r} does not exist: check the path")
     check_fps(fps)
     if path.is_dir():
-        return ImageFolderSource(path, roi=roi, fps=fps, require_fps=require_fps)
+        return ImageFolderSource(path, roi=roi, fps=fps, require_fps=require_fps, exclude=exclude)
     if is_tiff_stack(path):
         return TiffStackSource(path, roi=roi, fps=fps, require_fps=require_fps)
     camera = open_camera_file(path)

@@ -726,6 +726,26 @@ def test_a_tiff_stack_is_measured_frame_by_frame(tmp_path) -> None:
     assert meta["input"]["bit_depth"] > 8 and any(note.startswith("16-bit TIFF pages") for note in meta["notes"])
 
 
+def test_a_mask_kept_in_the_folder_of_frames_is_not_a_frame(tmp_path) -> None:
+    """Users keep the mask beside the frames it was drawn on: it was read as the folder's last
+    frame (a 7.5 px reading, flagged invalid, in the time series)."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    shifts = [0.0, 0.5, 1.0]
+    for i, shift in enumerate(shifts):
+        cv2.imwrite(str(folder / f"{i:04d}.png"), np.clip(np.rint(texture(shift)), 0, 255).astype(np.uint8))
+    mask = np.zeros((H, W), np.uint8)
+    mask[30:90, 40:120] = 255
+    cv2.imwrite(str(folder / "mask.png"), mask)
+    out = tmp_path / "o.csv"
+    assert main(["track", str(folder), "--fps", "10", "--mask", str(folder / "mask.png"), "--out", str(out),
+                 "--no-progress"]) == 0
+    rows = read_csv(out)
+    assert len(rows) == 3 and np.allclose([float(r["dx_px"]) for r in rows], shifts, atol=0.02), rows
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert any(note.startswith("mask.png in the folder is one of the run's other inputs") for note in meta["notes"])
+
+
 def test_deep_data_is_measured_at_full_depth(tmp_path) -> None:
     """A faint texture in 12-bit data (+-11 counts, +-0.6 grey levels on the 8-bit scale):
     the default method reads it at full depth, more accurately than from the same frames
