@@ -119,20 +119,19 @@ def _imagej_images(tif) -> int:
         return 0
 
 
-def _pillow_page(path: Path, index: int) -> np.ndarray:
-    """Page ``index`` of a TIFF decoded by Pillow (LZW and the other compressions tifffile leaves
-    to the imagecodecs package), as stored: colour in RGB order, native byte order. Pillow has
-    no 16-bit colour: such pages are refused."""
-    from PIL import Image
-
-    with Image.open(path) as image:
-        image.seek(index)
-        bits = image.tag_v2.get(258, (8,))
-        if image.mode in ("RGB", "RGBA") and max(bits) > 8:
-            raise ValueError(f"{max(bits)}-bit colour in a compression only imagecodecs decodes")
-        if image.mode not in {"L", "I;16", "I;16B", "I;16L", "I", "F", "RGB", "RGBA"}:
-            image = image.convert("RGB" if image.mode not in ("1", "LA", "La") else "L")
-        array = np.asarray(image)
+def _pillow_page(image, index: int) -> np.ndarray:
+    """Page ``index`` of the TIFF open in Pillow as ``image``, decoded by Pillow (LZW and the
+    other compressions tifffile leaves to the imagecodecs package), as stored: colour in RGB
+    order, native byte order. Pillow finds a page from the one before, so pages read in turn
+    cost one step each. Pillow has no 16-bit colour: such pages are refused."""
+    image.seek(index)
+    bits = image.tag_v2.get(258, (8,))
+    if image.mode in ("RGB", "RGBA") and max(bits) > 8:
+        raise ValueError(f"{max(bits)}-bit colour in a compression only imagecodecs decodes")
+    page = image
+    if page.mode not in {"L", "I;16", "I;16B", "I;16L", "I", "F", "RGB", "RGBA"}:
+        page = page.convert("RGB" if page.mode not in ("1", "LA", "La") else "L")
+    array = np.asarray(page)
     return array.astype(array.dtype.newbyteorder("="), copy=False)
 
 
@@ -223,9 +222,10 @@ class TiffStackSource(ImageSequence):
         """TIFF frames hold what was saved, unless JPEG-compressed."""
         return "jpeg" not in self._compression
 
-    def _read(self, tif, index: int) -> np.ndarray:
+    def _read(self, tif, index: int, pillow: contextlib.ExitStack | None = None) -> np.ndarray:
         """Frame ``index`` as OpenCV reads images: native byte order, rows x columns (x colour,
-        in BGR order)."""
+        in BGR order). ``pillow``: where the file stays open in Pillow between pages, if its
+        compression needs it (opened on the first such page)."""
         if self._offset is not None:
             count = int(np.prod(self._page_shape))
             with self.path.open("rb") as handle:
@@ -233,13 +233,16 @@ class TiffStackSource(ImageSequence):
                 array = np.frombuffer(handle.read(count * self._stored.itemsize), self._stored)
             array = array.reshape(self._page_shape)
         else:
-            page = tif.pages[self._pages[index]]
-            try:
-                array = page.asarray()
-            except ValueError as error:  # a compression tifffile decodes only with imagecodecs (LZW)
-                if "imagecodecs" not in str(error):
-                    raise
-                array = _pillow_page(self.path, self._pages[index])
+            array = None
+            if not getattr(self, "_via_pillow", False):
+                try:
+                    array = tif.pages[self._pages[index]].asarray()
+                except ValueError as error:  # a compression tifffile decodes only with imagecodecs (LZW)
+                    if "imagecodecs" not in str(error):
+                        raise
+                    self._via_pillow = True
+            if array is None:
+                array = self._pillow_read(self._pages[index], pillow)
         array = array.astype(array.dtype.newbyteorder("="), copy=False)
         own = [axis for axis in self._axes if axis in _IMAGE_AXES]
         if array.ndim == len(own) and own != [axis for axis in "YXS" if axis in own]:
@@ -248,17 +251,27 @@ class TiffStackSource(ImageSequence):
             array = array[..., [2, 1, 0, 3][:array.shape[2]]]
         return np.ascontiguousarray(array)
 
+    def _pillow_read(self, page: int, pillow: contextlib.ExitStack | None) -> np.ndarray:
+        from PIL import Image
+
+        if pillow is None:
+            with Image.open(self.path) as image:
+                return _pillow_page(image, page)
+        if not hasattr(pillow, "image"):
+            pillow.image = pillow.enter_context(Image.open(self.path))
+        return _pillow_page(pillow.image, page)
+
     def _frames(self, start: int, stop: int | None) -> Iterator[tuple[int, float, np.ndarray]]:
         import tifffile
 
         last = self.header_frames if stop is None else min(stop, self.header_frames)
-        with _quiet(), tifffile.TiffFile(self.path) as tif:
+        with _quiet(), tifffile.TiffFile(self.path) as tif, contextlib.ExitStack() as pillow:
             for index in range(last):
                 self.frames_read = index + 1
                 if index < start:
                     continue
                 try:
-                    image = self._read(tif, index)
+                    image = self._read(tif, index, pillow)
                 except Exception as error:  # noqa: BLE001 - a damaged page, whatever tifffile raises
                     raise InputError(f"frame {index} of {self.path.name} cannot be read ({error}): check the "
                                      "file") from None

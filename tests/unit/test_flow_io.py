@@ -271,7 +271,13 @@ def test_a_tiff_stack_is_read_frame_by_frame(tmp_path, kind) -> None:
     for i, page in enumerate(pages):
         cv2.imwrite(str(folder / f"{i}.tif"), page)
     source = open_source(stack, fps=10.0)
-    frames = [(t, grey) for _, t, grey in source]
+    from PIL import Image
+
+    opened = []
+    with pytest.MonkeyPatch.context() as patch:  # pages read in turn: the file opened once, not per page
+        patch.setattr(Image, "open", lambda *a, _open=Image.open, **k: opened.append(a) or _open(*a, **k))
+        frames = [(t, grey) for _, t, grey in source]
+    assert len(opened) <= 1
     twins = [grey for _, _, grey in open_source(folder, fps=10.0)]
     assert type(source).__name__ == "TiffStackSource" and source.header_frames == 5 and source.lossless
     assert np.allclose([t for t, _ in frames], [0.0, 0.1, 0.2, 0.3, 0.4])
