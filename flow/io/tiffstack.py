@@ -205,6 +205,7 @@ class TiffStackSource(ImageSequence):
         """One frame per page (``main``: the pages that are images of their own), all of one
         size and pixel type, their data within the file."""
         self._offset = None
+        self._via_pillow = False  # set on the first page tifffile cannot decode without imagecodecs
         self._pages = [page.index for page in main]
         self._axes = main[0].axes
         for k, page in enumerate(main):
@@ -234,7 +235,7 @@ class TiffStackSource(ImageSequence):
             array = array.reshape(self._page_shape)
         else:
             array = None
-            if not getattr(self, "_via_pillow", False):
+            if not self._via_pillow:
                 try:
                     array = tif.pages[self._pages[index]].asarray()
                 except ValueError as error:  # a compression tifffile decodes only with imagecodecs (LZW)

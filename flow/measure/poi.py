@@ -9,7 +9,7 @@ import numpy as np
 
 from flow.io.errors import InputError
 from flow.io.frames import Roi
-from flow.io.imagefiles import read_image
+from flow.io.imagefiles import exif_orientation, read_image
 from flow.io.video import DISPLAY_ROTATIONS
 
 
@@ -22,17 +22,6 @@ def mask_labels(image: np.ndarray) -> np.ndarray:
     if values.size and values[-1] < 128:
         return image.astype(np.int32)
     return (image > 127).astype(np.int32)
-
-
-def _exif_orientation(path: Path) -> int | None:
-    """The EXIF orientation tag of an image file (None where it has none or Pillow cannot tell)."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as image:
-            return image.getexif().get(0x0112)
-    except (OSError, ValueError):  # Pillow cannot read it: no tag known
-        return None
 
 
 def read_mask_image(path: str | Path) -> tuple[np.ndarray | None, str, bool]:
@@ -58,7 +47,7 @@ def read_mask_image(path: str | Path) -> tuple[np.ndarray | None, str, bool]:
     transparent = alpha is not None and bool((alpha < 128).any())
     if not (labels16 or transparent):
         return image, complaint, False
-    if _exif_orientation(path) not in (None, 1):
+    if exif_orientation(path) != 1:
         raise InputError(f"mask {path.name} has an EXIF orientation tag as well as "
                          f"{'16-bit values' if labels16 else 'transparent pixels'}: save it turned as it "
                          "should be, without the tag")
