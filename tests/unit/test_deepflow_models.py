@@ -469,3 +469,34 @@ def test_a_chain_does_not_track_an_outline_after_a_step_beyond_its_search() -> N
         read.append(float(np.mean(flow[..., 0][poi])))
     assert full == [True, False, False, True, True, False]
     np.testing.assert_allclose(read, (0.0, 0.5, 1.0, 8.0, 8.5, 9.0), atol=0.3)
+
+
+def test_a_masks_pixels_past_the_outline_take_the_members_motion_where_the_outline_reads() -> None:
+    """A mask 6 px wider than a faint bar on each side: the outline found inside it reads the
+    frame, and the mask's pixels on the still wall beyond take the member's mean motion (they
+    were read with the wall's flow and averaged in: 0.56 px RMSE, slope 0.67); in a tracked
+    frame too, whose dense flow is not solved."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from _lowtex_clip import make_clip
+
+    clip = make_clip(seed=3, frames=4, amplitude=2.0, height=200)
+    x0 = (clip.mask.shape[1] - 32) // 2
+    loose = np.zeros(clip.mask.shape, bool)
+    loose[clip.mask.any(axis=1), x0 - 6:x0 + 38] = True
+    method = deepflow_module.DeepFlow()
+    method.bind(clip.frames[0], loose)
+    method.restart()
+    region = method._regions[0]
+    assert region.rim_rows.size >= 10 * int(clip.mask.any(axis=1).sum())
+    assert 6 <= region.rim_px <= 8 and method.counts["mask_past_outline_px"] == region.rim_px
+    truth = clip.truth_px - clip.truth_px[0]
+    for i in (1, 2, 3):
+        flow = method.calc(clip.frames[0], clip.frames[i])
+        assert region.read_by == "outline"
+        core = flow[region.rows, region.cols, 0]
+        np.testing.assert_allclose(flow[region.rim_rows, region.rim_cols, 0], core.mean(), rtol=1e-6)
+        assert abs(float(flow[..., 0][loose].mean()) - truth[i]) < 0.15, (i, truth[i])
+    assert method.counts["warm_frames"] >= 1
+    plain = deepflow_module.DeepFlow()  # the mask drawn inside the bar: no rim
+    plain.bind(clip.frames[0], clip.mask)
+    assert plain._regions[0].rim_rows.size == 0 and plain.counts["mask_past_outline_px"] == 0

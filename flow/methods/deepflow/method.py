@@ -40,7 +40,7 @@ from flow.methods.deepflow.localfit import (
     refine_adaptively,
     refine_locally,
 )
-from flow.methods.deepflow.member import BLURS, MemberEdges, MemberFit, context_px
+from flow.methods.deepflow.member import BLURS, MemberEdges, MemberFit, context_px, inner_outline
 from flow.methods.deepflow.regionfit import RegionFit, RegionMotion, affine_departure
 from flow.methods.deepflow.variational import VariationalParams, Workspace, refine
 from flow.methods.params import Param, declared, with_defaults
@@ -512,12 +512,25 @@ class _Region:
     along_seen: tuple | None = None  # the texture's along-member motion of the last two frames taking it
     along_ambiguity: float = 0.0  # px, the last motion's (see motion): what the POIs could not tell apart along
     key_ambiguity: float = 0.0  # and the chain key's
+    # The mask's POIs beyond the member's outline (a mask drawn past it onto the background, see
+    # member.inner_outline): they take the member's mean motion where its outline read it (its
+    # background seen standing still), their own dense flow otherwise; rows and cols above are
+    # the member's part.
+    rim_rows: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
+    rim_cols: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
+    rim_px: int = 0  # how far the mask reaches past the outline (px, its wider side)
+    read_by: str | None = None  # what read the region's last frame ("outline", "affine"; None: the dense flow)
 
     @classmethod
     def of(cls, reference: np.ndarray, mask: np.ndarray, label: int, *, member: bool,
            texture: bool, bias_correction: bool = True, codec_crf: float | None = None) -> _Region:
-        rows, cols = np.nonzero(mask)
         height, width = reference.shape
+        inner = inner_outline(reference, mask) if member else None
+        rim = np.zeros(mask.shape, bool)
+        if inner is not None:
+            rim = mask & ~inner[0]
+            mask = inner[0]
+        rows, cols = np.nonzero(mask)
         edges = MemberEdges.from_reference(reference, mask, lossless=codec_crf is None) if member else None
         presmooth = _presmooth(codec_crf)
         fit = (RegionFit(reference, rows, cols, bias_correction=bias_correction, presmooth_px=presmooth,
@@ -536,9 +549,11 @@ class _Region:
             reference, rows, cols, bias_correction=bias_correction, max_points=ALONG_POINTS,
             tolerance_px=ALONG_TOLERANCE_PX, rounding_floor=codec_crf is None)
         strength = (0.0, 0.0) if fit is None else fit.gradient_rms_of(_clear_of(edges, fit.rows, fit.cols))
+        rim_rows, rim_cols = np.nonzero(rim)
         return cls(label, edges, fit, rows, cols, prior_rows, prior_cols,
                    float(np.median(reference[mask])) or 1.0, reference=reference if lossy else None,
-                   codec_crf=codec_crf if lossy else None, along_fit=along_fit, texture_strength=strength)
+                   codec_crf=codec_crf if lossy else None, along_fit=along_fit, texture_strength=strength,
+                   rim_rows=rim_rows, rim_cols=rim_cols, rim_px=0 if inner is None else inner[1])
 
     @property
     def strong_texture(self) -> bool:
@@ -1125,7 +1140,7 @@ class DeepFlow(DenseMethod):
         self.counts = dict.fromkeys(("full_frames", "warm_frames", "hidden_frames", "outline_readings", "affine_readings",
                                      "dense_readings", "background_texture_readings", "along_texture", "reach_widened",
                                      "outline_every_model", "outline_models_left_out", "codec_copies_left_out",
-                                     "codec_floor_s",
+                                     "codec_floor_s", "mask_past_outline_px",
                                      "codec_floor_x_px", "codec_floor_y_px",
                                      *(f"field_window_{w:g}px" for w in (WINDOW_PX, *WIDER_WINDOWS_PX)),
                                      *(f"why_{reason}" for reason in REASONS)), 0)
@@ -1180,6 +1195,8 @@ class DeepFlow(DenseMethod):
             self._regions.append(_Region.of(reference, region, int(label), member=self._member_on,
                                             texture=self._texture_on, bias_correction=self._bias_on,
                                             codec_crf=self._codec_crf))
+        self.counts["mask_past_outline_px"] = max([self.counts["mask_past_outline_px"]]
+                                                  + [r.rim_px for r in self._regions])
         self._scene = SceneCheck(reference, self._window)
         if self._warm_on and read is None:
             self.chain_length = CHAIN_LENGTH
@@ -1312,6 +1329,13 @@ class DeepFlow(DenseMethod):
                     self.counts["outline_models_left_out"] += 1
                 flow[region.rows, region.cols, 0] = u
                 flow[region.rows, region.cols, 1] = v
+            if region.rim_rows.size and found is not None and region.read_by == "outline":
+                # The mask's pixels beyond the member's outline: the member's mean motion (the
+                # dense flow there is the still background's, dragged near the outline). Where
+                # the outline did not read the frame, their own flow: what lies beyond was not
+                # seen standing still, and eq. (10)-(12) judge those pixels as any others.
+                flow[region.rim_rows, region.rim_cols, 0] = np.mean(u)
+                flow[region.rim_rows, region.rim_cols, 1] = np.mean(v)
         if self._chaining:
             self._motion_px = _poi_motion(flow, self._poi_rows, self._poi_cols)
             for region in regions:
@@ -1526,11 +1550,14 @@ class DeepFlow(DenseMethod):
                     (region.rows, region.cols, refined[2].astype(np.float32), refined[3].astype(np.float32))]
         if model == "outline" and region.along_texture:
             self.counts["along_texture"] += 1
+        region.read_by = model
         if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
             region.model, region.theta, region.key_along = "outline", fit.params, along
             region.key_outline = (fit.model, fit.systematic, fit.spread)
             region.key_ambiguity = region.along_ambiguity
-        elif self._chaining and model == "affine":
+        elif self._chaining and model == "affine" and not region.rim_rows.size:
+            # (A region with a rim is not tracked by its texture: a tracked frame has no dense flow
+            # for the rim's own pixels, see calc.)
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
             region.key_rms = texture.rms
         return chosen
@@ -1572,6 +1599,7 @@ class DeepFlow(DenseMethod):
                 return None
             region.affine_before, region.affine = previous, found.params
             self._count("affine")
+            region.read_by = "affine"
             return region.texture_reading(found)
         member = region.member
         if region.last_step_px > MAX_WARM_STEP_PX:
@@ -1612,6 +1640,7 @@ class DeepFlow(DenseMethod):
             region.static_known = True
         region.theta = fit.params
         self._count("outline")
+        region.read_by = "outline"
         self.counts["outline_every_model"] += fit.every_model
         if state == "taken":
             self.counts["along_texture"] += 1
