@@ -211,6 +211,14 @@ def motorcycle(methods: list[str]) -> dict[str, dict]:
     return out
 
 
+def publish(text: str, out: str | None) -> int:
+    """Print a benchmark's table, write it to ``out`` too where given; the exit status (0)."""
+    print(text)
+    if out:
+        Path(out).write_text(text + "\n")
+    return 0
+
+
 def fmt(value: float | None, digits: int = 3) -> str:
     return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
 
@@ -316,11 +324,7 @@ def main(argv: list[str] | None = None) -> int:
         moto.update(motorcycle([name for name in methods if name not in moto or args.again]))
         save()
     shown = list(dict.fromkeys([*methods, *(name for per in results.values() for name in per)]))
-    text = table({clip: results[clip] for clip in clips}, floors, moto, shown, dic)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
-    return 0
+    return publish(table({clip: results[clip] for clip in clips}, floors, moto, shown, dic), args.out)
 
 
 if __name__ == "__main__":
