@@ -115,6 +115,14 @@ def _no_frames(source: FrameSource, start: int, stop: int | None) -> InputError:
     return InputError("no frame to measure: the video is empty")
 
 
+def _one_frame(start: int, stop: int | None, n_frames: int) -> None:
+    """A whole input of one frame, the reference only: refused rather than written as a row of
+    zeros. A ``--frames`` part of one frame is a part of a run, measured as any other."""
+    if n_frames == 1 and start == 0 and stop is None:
+        raise InputError("the input holds one frame, the reference: a displacement needs at least one more; "
+                         "pass the whole video or image folder")
+
+
 def _pixels(shape: tuple[int, ...], rows: np.ndarray, columns: np.ndarray) -> np.ndarray:
     """A bool image of ``shape``, True at the given pixels."""
     image = np.zeros(shape, bool)
@@ -524,6 +532,7 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
     t2 = time.perf_counter()
     if not collected.frames:
         raise _no_frames(source, start, stop)
+    _one_frame(start, stop, len(collected.frames))
     xy = (readout.xs + np.float32(origin[0]), readout.ys + np.float32(origin[1]))
     return _assemble(collected, source, regions, xy, reference_frame, offset, digest,
                      {**_timings(t0, t1, t2, len(collected.frames)), **pool.chain_counts()},
@@ -598,6 +607,7 @@ def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
     t2 = time.perf_counter()
     if not frame_list:
         raise _no_frames(source, start, stop)
+    _one_frame(start, stop, len(frame_list))
     dx, dy = store.arrays()
     row = frame_list.index(reference_frame) if reference_frame in frame_list else 0
     return Tracks(frame=np.asarray(frame_list), time_s=np.asarray(times), dx=dx, dy=dy,

@@ -63,6 +63,8 @@ def make_bad_videos(folder: Path) -> None:
     source = ["-f", "lavfi", "-i", f"testsrc=size={W}x{H}:rate=30"]
     ffmpeg(*source, "-frames:v", "0", "-c:v", "ffv1", str(folder / "zero_frames.mkv"))
     ffmpeg(*source, "-frames:v", "0", "-c:v", "libx264", str(folder / "zero_frames.mp4"))
+    # One frame: a still exported as a clip (it read as a row of zeros before 2026-12-06).
+    ffmpeg(*source, "-frames:v", "1", "-c:v", "ffv1", str(folder / "one_frame.mkv"))
     # A complete MP4 with its index first (as phones write after recording), then cut:
     # the header promises 30 frames, the data stops after a few.
     ffmpeg(*source, "-frames:v", "30", "-c:v", "libx264", "-pix_fmt", "yuv420p", "-movflags", "+faststart",
@@ -102,6 +104,8 @@ def clip(tmp_path_factory) -> dict[str, Path]:
         ok, image = cap.read()
         assert ok
         cv2.imwrite(str(images / f"img_{i:04d}.png"), image)
+    (folder / "one_image").mkdir()
+    cv2.imwrite(str(folder / "one_image" / "img_0000.png"), image)
     return {"video": video, "mask": folder / "mask.png", "folder": folder, "images": images}
 
 
@@ -268,6 +272,9 @@ BAD = {
     "frame range past the end": (["{video}", "--mask", "{mask}", "--frames", "40:50"], "no frame to measure in frames 40:50"),
     "frame range for klt": (["{video}", "--mask", "{mask}", "--method", "klt", "--frames", "0:5"],
                             "--frames needs a reference-frame (dense) method"),
+    "one-frame video": (["{folder}/one_frame.mkv", "--mask", "{mask}"], "the input holds one frame, the reference"),
+    "one-image folder": (["{folder}/one_image", "--mask", "{mask}", "--fps", "30"],
+                         "a displacement needs at least one more"),
     "reference beyond the end": (["{video}", "--mask", "{mask}", "--reference-frame", "99"], "beyond the 30"),
     "infinite scale point": (["{video}", "--mask", "{mask}", "--known-length", "5", "--between", "1,1,inf,5"],
                              "holds a NaN or infinite coordinate"),
@@ -305,6 +312,14 @@ def test_bad_input_gives_one_line_and_no_output(case, clip, tmp_path, capsys) ->
     assert expected in err, err
     assert len(err.splitlines()) == 1 and "Traceback" not in err
     assert list(tmp_path.iterdir()) == [], "no output, no temporary left behind"
+
+
+def test_a_part_of_one_frame_is_measured(clip, tmp_path) -> None:
+    # A --frames part (of a run split by hand, merged later) may hold one frame: it is no input of one.
+    out = tmp_path / "part.csv"
+    assert main(["track", str(clip["video"]), "--mask", str(clip["mask"]), "--method", "dis", "--frames", "3:4",
+                 "--out", str(out), "--no-progress"]) == 0
+    assert [r["frame"] for r in read_csv(out)] == ["3"]
 
 
 def test_every_bad_input_has_its_own_message() -> None:
