@@ -330,11 +330,15 @@ def _track_frames(options: TrackOptions, setup: _Setup, method: Any, new_method:
     time_s, clock_notes = setup.source.clock(tracks.frame, tracks.time_s)
     for note in clock_notes:
         _note(notes, note)
-    past = (tracks.timings_s or {}).get("mask_past_outline_px", 0)
-    if past:
-        _note(notes, f"the mask reaches up to {past:g} px past the member's outline onto the background: the member "
-              "was measured by the outline found inside the mask, and the mask's pixels beyond it take the member's "
-              "motion (draw the mask inside the structure to keep to its own pixels)")
+    timings = tracks.timings_s or {}
+    if timings.get("mask_past_outline_px", 0):
+        filled = int(timings.get("rim_filled_frames", 0))
+        _note(notes, f"the mask reaches up to {timings['mask_past_outline_px']:g} px past a sharp step of its grey along "
+              "it, taken for the member's outline: the outline found there read "
+              + (f"{filled} of {len(tracks.frame)} frames, and in those the mask's pixels beyond it took the member's "
+                 "motion (in the others, their own)" if filled else "no frame, and the mask's pixels beyond it kept "
+                 "their own flow")
+              + "; draw the mask inside the structure to keep to its own pixels")
     tracks = replace(tracks, time_s=time_s)
     for warning in caught:
         notes.append(str(warning.message))

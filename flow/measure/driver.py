@@ -244,6 +244,9 @@ class _PoiReadout:
         dx = flow[self._rows, self._columns, 0].astype(np.float32)
         dy = flow[self._rows, self._columns, 1].astype(np.float32)
         error = sample(current, self.xs + dx, self.ys + dy) - self._ref_values
+        filled = getattr(method, "last_filled", None)  # POIs whose flow the method gave, not read
+        if filled is not None and filled.shape == current.shape[:2]:
+            error[filled[self._rows, self._columns]] = np.nan  # (mean_abs takes the finite ones)
         own = getattr(method, "last_sigmas_px", None) or {}
         labels, groups = self._regions.labels, self._regions.groups
         residual = np.array([mean_abs(error[group]) for group in groups])

@@ -495,8 +495,11 @@ def test_a_masks_pixels_past_the_outline_take_the_members_motion_where_the_outli
         assert region.read_by == "outline"
         core = flow[region.rows, region.cols, 0]
         np.testing.assert_allclose(flow[region.rim_rows, region.rim_cols, 0], core.mean(), rtol=1e-6)
+        # (Given, not read: the driver leaves them out of the frame's photometric residual.)
+        assert method.last_filled[region.rim_rows, region.rim_cols].all()
+        assert method.last_filled.sum() == region.rim_rows.size
         assert abs(float(flow[..., 0][loose].mean()) - truth[i]) < 0.15, (i, truth[i])
-    assert method.counts["warm_frames"] >= 1
+    assert method.counts["warm_frames"] >= 1 and method.counts["rim_filled_frames"] == 3
     plain = deepflow_module.DeepFlow()  # the mask drawn inside the bar: no rim
     plain.bind(clip.frames[0], clip.mask)
     assert plain._regions[0].rim_rows.size == 0 and plain.counts["mask_past_outline_px"] == 0

@@ -359,22 +359,27 @@ def test_a_mask_inside_the_member_or_on_its_outline_is_taken_whole(past_px):
     assert inner_outline(clip.frames[0].astype(np.float32), _bar_mask(clip, past_px)) is None
 
 
-def test_a_shading_or_a_mark_inside_the_mask_is_not_an_outline():
-    from flow.methods.deepflow.member import inner_outline
+def test_a_shading_or_a_mark_inside_the_mask_is_not_an_outline(monkeypatch):
+    from flow.methods.deepflow import member
     rng = np.random.default_rng(5)
-    height, width = 160, 120
+    height, width = 400, 120
     xs = np.arange(width, dtype=np.float64)
     # A round member lit from one side: 180 grey on its crown down to 80 at its limbs (x 20-100).
     across = np.clip((xs - 60.0) / 40.0, -1.0, 1.0)
     shade = 80.0 + 100.0 * np.sqrt(1.0 - across ** 2)
-    image = np.tile(shade, (height, 1)) + rng.normal(0.0, 1.0, (height, width))
+    image = (np.tile(shade, (height, 1)) + rng.normal(0.0, 1.0, (height, width))).astype(np.float32)
     mask = np.zeros((height, width), bool)
-    mask[20:140, 24:96] = True  # inside the limbs: its greys ramp across the mask
-    assert inner_outline(image.astype(np.float32), mask) is None
-    # A flat member with a dark mark near one side of the mask, along a quarter of its length.
+    mask[20:380, 24:96] = True  # a band inside the limbs: its greys ramp across it, with no step
+    assert member.inner_outline(image, mask) is None
+    with monkeypatch.context() as patch:  # (the ramp is what tells it: taken for a step, it is cut)
+        patch.setattr(member, "RIM_STEP_SHARE", 0.0)
+        assert member.inner_outline(image, mask) is not None
+    # A flat member with a dark mark along one side of the mask, over a quarter of its length.
     flat = 150.0 + rng.normal(0.0, 1.0, (height, width))
-    flat[20:50, 26:34] = 60.0
-    assert inner_outline(flat.astype(np.float32), mask) is None
+    flat[20:110, 24:32] = 60.0
+    assert member.inner_outline(flat.astype(np.float32), mask) is None
+    flat[20:290, 24:32] = 60.0  # along three quarters of it: a member's outline, as far as the mask shows
+    assert member.inner_outline(flat.astype(np.float32), mask) is not None
 
 
 def test_a_girder_in_hazard_tape_masked_past_its_outlines_is_cut_to_it():

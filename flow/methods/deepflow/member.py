@@ -343,8 +343,8 @@ def _band_axes(xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 def inner_outline(reference: np.ndarray, mask: np.ndarray,
                   params: MemberParams | None = None) -> tuple[np.ndarray, int] | None:
     """The member's part of a band-like ``mask`` drawn past the member's outlines onto the
-    background, and how many px it reaches past them (its pixels off the member's grey from the
-    outline's, on the wider side); None where the mask
+    background, and how many px it reaches past them (its pixels across it off the member's grey,
+    the outline's mixed pixel included, on the wider side); None where the mask
     shows no such outline inside it (the mask drawn inside the member, or on its outline).
 
     Across the mask, the mean grey of its pixels is taken 1 px at a time (averaged along the
@@ -354,8 +354,9 @@ def inner_outline(reference: np.ndarray, mask: np.ndarray,
     (at least RIM_STEP_SHARE of the change within RIM_SPAN_PX: a shaded round member's ramp is
     no outline) of at least RIM_CONTRAST tolerances, seen on the same side in all of STEP_PARTS
     parts of the mask's length but one at most (a mark on the member is not; a background that
-    looks like the member in one part is). The part returned stops one pixel
-    short of the step's first pixel; the support grows from it to the outline (see _grow).
+    looks like the member in one part is). The part returned leaves out the
+    step's first pixel and the one before it (the outline's mixed pixels, a blurred outline's
+    too); the support grows from it to the outline (see _grow).
 
     Grown from the whole mask, the member's grey and texture would hold the background's, the
     support would take the background beyond, and its profiles would lie on no outline: a faint

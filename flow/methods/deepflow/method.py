@@ -1140,7 +1140,7 @@ class DeepFlow(DenseMethod):
         self.counts = dict.fromkeys(("full_frames", "warm_frames", "hidden_frames", "outline_readings", "affine_readings",
                                      "dense_readings", "background_texture_readings", "along_texture", "reach_widened",
                                      "outline_every_model", "outline_models_left_out", "codec_copies_left_out",
-                                     "codec_floor_s", "mask_past_outline_px",
+                                     "codec_floor_s", "mask_past_outline_px", "rim_filled_frames",
                                      "codec_floor_x_px", "codec_floor_y_px",
                                      *(f"field_window_{w:g}px" for w in (WINDOW_PX, *WIDER_WINDOWS_PX)),
                                      *(f"why_{reason}" for reason in REASONS)), 0)
@@ -1176,6 +1176,8 @@ class DeepFlow(DenseMethod):
         self.chain_length = 0
         self._motion_px = None
         self._scene = None
+        # The pixels whose flow a frame's calc gave, not read (see calc): None where none may be.
+        self.last_filled: np.ndarray | None = None
         mask = np.asarray(mask)
         self._poi_rows, self._poi_cols = (np.nonzero(mask) if self._crop_on and mask.shape == reference.shape
                                           else (np.zeros(0, np.intp),) * 2)
@@ -1195,8 +1197,9 @@ class DeepFlow(DenseMethod):
             self._regions.append(_Region.of(reference, region, int(label), member=self._member_on,
                                             texture=self._texture_on, bias_correction=self._bias_on,
                                             codec_crf=self._codec_crf))
-        self.counts["mask_past_outline_px"] = max([self.counts["mask_past_outline_px"]]
-                                                  + [r.rim_px for r in self._regions])
+        self.counts["mask_past_outline_px"] = max([0] + [r.rim_px for r in self._regions])
+        if any(r.rim_rows.size for r in self._regions):
+            self.last_filled = np.zeros(reference.shape, bool)
         self._scene = SceneCheck(reference, self._window)
         if self._warm_on and read is None:
             self.chain_length = CHAIN_LENGTH
@@ -1285,6 +1288,8 @@ class DeepFlow(DenseMethod):
         self.last_sigmas_px = {}
         self.last_sigmas_hold_reference = set()
         self.last_field_sigma = None  # set where a region is read pixel by pixel (see _full)
+        if self.last_filled is not None:
+            self.last_filled[...] = False
         # None where the frame is not checked (no region refined: deepflow-dense).
         self.last_hidden = None if not regions or self._scene is None else False
         if self.last_hidden is not None and self._scene.hidden(current):
@@ -1311,6 +1316,7 @@ class DeepFlow(DenseMethod):
         camera = None
         if self._background is not None and current.shape == self._bound_shape:
             camera = self._read_background(current, flow)
+        rims = []  # written once every region is read (a region's background check reads the flow beyond it)
         for region, warm in zip(regions, tracked, strict=True):
             self.check_stop()
             found = warm if warm is not None else self._full(reference, current, flow, region,
@@ -1334,8 +1340,14 @@ class DeepFlow(DenseMethod):
                 # dense flow there is the still background's, dragged near the outline). Where
                 # the outline did not read the frame, their own flow: what lies beyond was not
                 # seen standing still, and eq. (10)-(12) judge those pixels as any others.
-                flow[region.rim_rows, region.rim_cols, 0] = np.mean(u)
-                flow[region.rim_rows, region.rim_cols, 1] = np.mean(v)
+                rims.append((region, float(np.mean(u)), float(np.mean(v))))
+        for region, mean_u, mean_v in rims:
+            flow[region.rim_rows, region.rim_cols, 0] = mean_u
+            flow[region.rim_rows, region.rim_cols, 1] = mean_v
+            # (Given, not read: the driver leaves them out of the frame's photometric residual,
+            # where the still wall moved by the member's motion would look like an occluder.)
+            self.last_filled[region.rim_rows, region.rim_cols] = True
+        self.counts["rim_filled_frames"] += bool(rims)
         if self._chaining:
             self._motion_px = _poi_motion(flow, self._poi_rows, self._poi_cols)
             for region in regions:
