@@ -515,7 +515,8 @@ class _Region:
     # The mask's POIs beyond the member's outline (a mask drawn past it onto the background, see
     # member.inner_outline): they take the member's mean motion where its outline read it (its
     # background seen standing still), their own dense flow otherwise; rows and cols above are
-    # the member's part.
+    # the member's part. A region with a rim is not tracked by its texture (a tracked frame has
+    # no dense flow for the rim's own pixels).
     rim_rows: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
     rim_cols: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
     rim_px: int = 0  # how far the mask reaches past the outline (px, its wider side)
@@ -1560,16 +1561,13 @@ class DeepFlow(DenseMethod):
             if self.want_field_sigma:
                 self.last_field_sigma = (self.last_field_sigma or []) + [
                     (region.rows, region.cols, refined[2].astype(np.float32), refined[3].astype(np.float32))]
-        if model == "outline" and region.along_texture:
-            self.counts["along_texture"] += 1
+        self.counts["along_texture"] += model == "outline" and region.along_texture
         region.read_by = model
         if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
             region.model, region.theta, region.key_along = "outline", fit.params, along
             region.key_outline = (fit.model, fit.systematic, fit.spread)
             region.key_ambiguity = region.along_ambiguity
-        elif self._chaining and model == "affine" and not region.rim_rows.size:
-            # (A region with a rim is not tracked by its texture: a tracked frame has no dense flow
-            # for the rim's own pixels, see calc.)
+        elif self._chaining and model == "affine" and not region.rim_rows.size:  # (see _Region.rim_rows)
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
             region.key_rms = texture.rms
         return chosen
