@@ -1134,6 +1134,8 @@ class DeepFlow(DenseMethod):
         self.chain_length = 0
         self._chaining = False
         self._warm_flow: np.ndarray | None = None
+        # The pixels whose flow a frame's calc gave, not read (see calc): None where none may be.
+        self.last_filled: np.ndarray | None = None
         # Frames measured in full and tracked from their predecessor (see CHAIN_LENGTH), the
         # regions' readings by model and why each full measurement chose its model: the driver
         # sums every instance's counts into the sidecar's timings.
@@ -1177,8 +1179,7 @@ class DeepFlow(DenseMethod):
         self.chain_length = 0
         self._motion_px = None
         self._scene = None
-        # The pixels whose flow a frame's calc gave, not read (see calc): None where none may be.
-        self.last_filled: np.ndarray | None = None
+        self.last_filled = None
         mask = np.asarray(mask)
         self._poi_rows, self._poi_cols = (np.nonzero(mask) if self._crop_on and mask.shape == reference.shape
                                           else (np.zeros(0, np.intp),) * 2)
