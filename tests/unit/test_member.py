@@ -390,3 +390,30 @@ def test_a_girder_in_hazard_tape_masked_past_its_outlines_is_cut_to_it():
     core, reach = inner_outline(image, loose)
     rows = np.nonzero(core.any(axis=1))[0]
     assert 40 <= rows.min() <= 43 and 66 <= rows.max() <= 69 and 7 <= reach <= 9, (rows.min(), rows.max(), reach)
+
+
+def test_a_box_drawn_round_a_stretch_of_a_member_is_cut_where_both_its_outlines_lie_inside():
+    # A box about as wide as long (no band): a mask 24 px past each edge of a faint bar read
+    # 0.69 px RMSE, slope 0.60, before 2026-12-06.
+    from scipy import ndimage
+
+    from flow.methods.deepflow.member import inner_outline
+    clip = make_clip(seed=3, frames=1, amplitude=0.0)
+    reference = clip.frames[0].astype(np.float32)
+    x0 = (reference.shape[1] - 32) // 2
+    box = _bar_mask(clip, 24)
+    ys, xs = np.nonzero(box)
+    assert np.ptp(ys) + 1 < 2 * (np.ptp(xs) + 1)  # no band
+    core, reach = inner_outline(reference, box)
+    columns = np.nonzero(core.any(axis=0))[0]
+    assert (columns.min(), columns.max()) == (x0 + 1, x0 + 30) and 24 <= reach <= 25
+    one_side = box.copy()
+    one_side[:, x0 + 26:] = False  # the bar's right outline outside the box: one step, any edge's
+    one_side[ys.min() + 60:] = False  # (kept no band: a band's one step is cut, see above)
+    assert inner_outline(reference, one_side) is None
+    rng = np.random.default_rng(4)
+    texture = ndimage.gaussian_filter(rng.standard_normal((200, 260)), 1.0)
+    view = (140 + 12 * texture / texture.std()).astype(np.float32)  # a texture filling the view
+    square = np.zeros(view.shape, bool)
+    square[40:160, 60:200] = True
+    assert inner_outline(view, square) is None

@@ -171,6 +171,9 @@ RIM_STEP_SHARE = 0.6
 RIM_SPAN_PX = 3
 RIM_CONTRAST = 2.0
 RIM_MIN_PX = 2
+# A mask of more pixels is taken whole (its statistics across would cost about 0.5 GB and 5 s on a
+# whole 4K frame's mask; a band round a member in a 4K frame holds a few hundred thousand).
+MAX_CUT_PIXELS = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -342,7 +345,7 @@ def _band_axes(xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 def inner_outline(reference: np.ndarray, mask: np.ndarray,
                   params: MemberParams | None = None) -> tuple[np.ndarray, int] | None:
-    """The member's part of a band-like ``mask`` drawn past the member's outlines onto the
+    """The member's part of a ``mask`` drawn past the member's outlines onto the
     background, and how many px it reaches past them (its pixels across it off the member's grey,
     the outline's mixed pixel included, on the wider side); None where the mask
     shows no such outline inside it (the mask drawn inside the member, or on its outline).
@@ -361,13 +364,35 @@ def inner_outline(reference: np.ndarray, mask: np.ndarray,
     Grown from the whole mask, the member's grey and texture would hold the background's, the
     support would take the background beyond, and its profiles would lie on no outline: a faint
     bar read through a mask 6 px wider on each side than the bar went 0.066 -> 0.56 px RMSE,
-    slope 0.67 (the dense flow over the faint paint, and the background's pixels averaged in)."""
+    slope 0.67 (the dense flow over the faint paint, and the background's pixels averaged in).
+
+    A mask that is no band (a box about as wide as long, drawn round a stretch of a member) is
+    looked at across each image axis in turn, and cut where the member ends inside it on both
+    sides: 24 px past each edge of that bar, 0.69 px RMSE, slope 0.60 before."""
     params = params or MemberParams()
+    if np.count_nonzero(mask) > MAX_CUT_PIXELS:
+        return None
     ys, xs = np.nonzero(mask)
     found = _band_axes(xs, ys)
-    if found is None:
+    if found is not None:
+        return _cut_across(reference, mask, xs, ys, *found, params, both=False)
+    if len(xs) < 3:
         return None
-    centre, normal, along = found
+    # No band: a box drawn round a stretch of a member that crosses it. Across either image axis,
+    # where both of the member's outlines are found inside it (a lone step could be any edge).
+    centre = np.array([xs.mean(), ys.mean()])
+    for normal, along in ((np.array([1.0, 0.0]), np.array([0.0, 1.0])), (np.array([0.0, 1.0]), np.array([1.0, 0.0]))):
+        cut = _cut_across(reference, mask, xs, ys, centre, normal, along, params, both=True)
+        if cut is not None:
+            return cut
+    return None
+
+
+def _cut_across(reference: np.ndarray, mask: np.ndarray, xs: np.ndarray, ys: np.ndarray, centre: np.ndarray,
+                normal: np.ndarray, along: np.ndarray, params: MemberParams, *,
+                both: bool) -> tuple[np.ndarray, int] | None:
+    """:func:`inner_outline` across ``normal`` (the mask's pixels ``xs, ys`` about ``centre``);
+    ``both``: only where the member ends inside the mask on both sides."""
     s = (xs - centre[0]) * normal[0] + (ys - centre[1]) * normal[1]
     t = (xs - centre[0]) * along[0] + (ys - centre[1]) * along[1]
     bins = np.rint(s - s.min()).astype(np.int64)
@@ -418,7 +443,7 @@ def inner_outline(reference: np.ndarray, mask: np.ndarray,
             continue  # (one part may miss it: a background that looks like the member there)
         ends[index] = first - 2 * side
         past = max(past, len(rim))
-    if not past or ends[1] - ends[0] < 2:
+    if not past or ends[1] - ends[0] < 2 or (both and (ends[0] == 0 or ends[1] == n - 1)):
         return None
     core = np.zeros(mask.shape, bool)
     keep = (bins >= ends[0]) & (bins <= ends[1])
