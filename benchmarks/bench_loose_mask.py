@@ -3,8 +3,8 @@
 Each clip of ``../shared/bench/clips`` and ``../shared/bench/gen`` whose mask is a band (the
 painted bars; the shaded column, the large swing) is run again with its mask widened across
 the band by ``PAST`` px on each side, so that it reaches over the member's long outlines onto
-the still wall behind (the bench's masks lie 6-12 px inside the bars' edges: 12 px reaches
-about 4 px past them, 20 px about 12). Every method runs as a user runs it, ``refflow track
+the still wall behind (the bench's masks lie 3-12 px inside the bars' edges: 12 px reaches up
+to 9 px past them, 20 px up to 17; lowtex-wide's +12 ends on its outlines). Every method runs as a user runs it, ``refflow track
 CLIP --mask WIDE_MASK --mm-per-px 1``, and the bench's own scorer grades it against the clip's
 truth: the member's motion, which the widened mask does not change (the truth is the mean over
 the bar's interior, where every row moves alike or, for ``bend``, the same rows).
