@@ -100,3 +100,30 @@ def test_a_mask_drawn_past_the_members_outlines_reads_the_member(tmp_path) -> No
     assert int(re.search(r"read (\d+) of 60 frames", note).group(1)) >= 55, note
     assert not any("past a sharp step of its grey" in note
                    for note in json.loads((tmp_path / "loose_dis.json").read_text())["notes"])
+
+
+def test_a_mask_drawn_past_the_members_free_end_reads_the_member(tmp_path) -> None:
+    # A cantilever's tip with the still, textured wall below it, the mask drawn 12 px past the
+    # tip and 6 px past each edge: the wall was averaged in (0.57 px RMSE, slope 0.79, 2-sigma
+    # coverage 0.10; DIS 0.30 px, slope 0.82). Cut at the tip and at the outlines, it reads what
+    # a mask ending at the tip reads (0.08 px).
+    clip = make_clip(seed=3, frames=60, amplitude=2.0, height=200, tip_row=150)
+    rows = np.nonzero(clip.mask.any(axis=1))[0]
+    cols = np.nonzero(clip.mask.any(axis=0))[0]
+    loose = np.zeros(clip.mask.shape, bool)
+    loose[rows.min():162, cols.min() - 12:cols.max() + 13] = True
+    measured, sigma, valid = _track(tmp_path, clip, "tip", crf=18, mask=loose)
+    use = valid & np.isfinite(measured)
+    slope, rmse = _slope_rmse(measured, clip.truth_px, use)
+    dis, _, dis_valid = _track(tmp_path, clip, "tip_dis", crf=18, mask=loose, extra=("--method", "dis"))
+    dis_slope, dis_rmse = _slope_rmse(dis, clip.truth_px, dis_valid)
+    true = clip.truth_px - clip.truth_px[0]
+    covered = float(np.mean(np.abs(measured[use][1:] - true[use][1:]) < 2 * sigma[use][1:]))
+    print(f"mask past the tip: slope {slope:.4f}, RMSE {rmse:.4f} px, coverage {covered:.2f}; "
+          f"DIS {dis_slope:.4f}, {dis_rmse:.4f} px")
+    assert use.mean() >= 0.95
+    assert abs(slope - 1.0) <= 2 * SLOPE_TOLERANCE and rmse <= 0.1 and rmse < 0.5 * dis_rmse
+    assert covered >= 0.9
+    note = next(note for note in json.loads((tmp_path / "tip.json").read_text())["notes"]
+                if "past a sharp step of its grey" in note)
+    assert "up to 12 px" in note and int(re.search(r"read (\d+) of 60 frames", note).group(1)) >= 55, note

@@ -63,14 +63,16 @@ def make_clip(*, seed: int = 0, frames: int = 90, fps: float = 60.0, height: int
               occlude_s: tuple[float, float] | None = None, blur_px: float = 0.0,
               jump: tuple[float, float, float] | None = None,
               wall_mean: float = 111.0, wall_std: float = 35.0, member_grey: float = 149.0,
-              motion_px: np.ndarray | None = None) -> Clip:
+              motion_px: np.ndarray | None = None, tip_row: int | None = None) -> Clip:
     """Render a clip (see the module doc). ``axis="y"``: a horizontal member moving vertically
     (the scene is drawn for x and transposed). ``bend``: the displacement grows by this
     fraction from the top row to the bottom row. ``jump = (t0, t1, px)``: an extra
     displacement of ``px`` between ``t0`` and ``t1`` s. ``occlude_s``: a bright sheet covers
     the whole view. ``blur_px``: the lens's Gaussian blur (sigma, final pixels). ``motion_px``:
     the displacement of every frame, given (``amplitude``, ``frequency_hz`` and the noise then
-    unused; the random draws stay the same, so the wall and paint are those of ``seed``)."""
+    unused; the random draws stay the same, so the wall and paint are those of ``seed``).
+    ``tip_row``: the member ends there (a cantilever's free end, seen from the side), the wall
+    below (for ``axis="x"``; its rows are columns with ``axis="y"``)."""
     rng = np.random.default_rng(seed)
     h, w = (height, width) if axis == "x" else (width, height)
     H, W = h * UP, w * UP
@@ -112,6 +114,8 @@ def make_clip(*, seed: int = 0, frames: int = 90, fps: float = 60.0, height: int
         # Area coverage of each fine pixel by the displaced member.
         cover = np.clip(np.minimum(gx[None, :] + 0.5 / UP - left, right - (gx[None, :] - 0.5 / UP)) * UP,
                         0, 1)
+        if tip_row is not None:
+            cover = cover * (rows < tip_row)[:, None]
         moved = _shift_rows(spectrum, shift * UP)[:, pad:pad + W]
         fine = cover * moved + (1 - cover) * wall
         if blur_px > 0:  # the lens: a Gaussian point spread, drawn at the fine scale

@@ -417,3 +417,58 @@ def test_a_box_drawn_round_a_stretch_of_a_member_is_cut_where_both_its_outlines_
     square = np.zeros(view.shape, bool)
     square[40:160, 60:200] = True
     assert inner_outline(view, square) is None
+
+
+def _tip_mask(clip, tip: int, past_px: int, side_px: int = 0) -> np.ndarray:
+    """The clip's mask rows from its top down to ``past_px`` beyond the member's free end at row
+    ``tip`` (negative: inside it), ``side_px`` wider on each side than the clip's own mask."""
+    cols = np.nonzero(clip.mask.any(axis=0))[0]
+    rows = np.nonzero(clip.mask.any(axis=1))[0]
+    mask = np.zeros(clip.mask.shape, bool)
+    mask[rows.min():tip + past_px, cols.min() - side_px:cols.max() + 1 + side_px] = True
+    return mask
+
+
+@pytest.mark.parametrize("past_px, side_px", [(3, 0), (12, 0), (24, 0), (12, 12)])
+def test_a_mask_drawn_past_the_members_free_end_is_cut_at_it(past_px, side_px):
+    # A cantilever's tip with the still wall below it: a faint bar read through a mask 6 px past
+    # its tip went 0.08 -> 0.30 px RMSE (12 px: 0.39, slope 0.76), its texture fit taking the wall.
+    from flow.methods.deepflow.member import inner_outline
+    clip = make_clip(seed=3, frames=1, amplitude=0.0, height=200, tip_row=150)
+    reference = clip.frames[0].astype(np.float32)
+    mask = _tip_mask(clip, 150, past_px, side_px)
+    core, reach = inner_outline(reference, mask)
+    rows = np.nonzero(core.any(axis=1))[0]
+    assert rows.min() == np.nonzero(mask.any(axis=1))[0].min() and 147 <= rows.max() <= 148, rows.max()
+    assert past_px <= reach <= past_px + 2 and not (core & ~mask).any()
+    if side_px:  # cut across too, at the bar's outlines
+        x0 = (mask.shape[1] - 32) // 2
+        columns = np.nonzero(core.any(axis=0))[0]
+        assert x0 + 1 <= columns.min() <= x0 + 3 and x0 + 28 <= columns.max() <= x0 + 30
+
+
+@pytest.mark.parametrize("past_px", [-10, 0, 1])
+def test_a_mask_ending_on_or_before_the_members_free_end_is_taken_whole(past_px):
+    from flow.methods.deepflow.member import inner_outline
+    clip = make_clip(seed=3, frames=1, amplitude=0.0, height=200, tip_row=150)
+    assert inner_outline(clip.frames[0].astype(np.float32), _tip_mask(clip, 150, past_px)) is None
+
+
+def test_a_mark_across_the_member_or_a_member_leaving_the_band_sideways_is_no_free_end(monkeypatch):
+    from flow.methods.deepflow import member
+    rng = np.random.default_rng(6)
+    image = 150.0 + rng.normal(0.0, 1.0, (300, 80))
+    mask = np.zeros(image.shape, bool)
+    mask[20:280, 24:56] = True
+    image[250:262, :] = 60.0  # a dark band across the member (a weld, a clamp): it comes back after
+    assert member.inner_outline(image.astype(np.float32), mask) is None
+    image[250:, :] = 60.0  # ... down to the mask's end: an end, as far as the mask shows
+    core, reach = member.inner_outline(image.astype(np.float32), mask)
+    assert np.nonzero(core.any(axis=1))[0].max() == 248 and reach == 30  # (250 and 249 left out)
+    slanted = 150.0 + rng.normal(0.0, 1.0, (300, 80))
+    yy, xx = np.mgrid[0:300, 0:80]
+    slanted[yy > 250 + 0.5 * (xx - 24)] = 60.0  # the member leaves the band across 16 rows
+    assert member.inner_outline(slanted.astype(np.float32), mask) is None
+    with monkeypatch.context() as patch:  # (the halves' disagreement is what tells it)
+        patch.setattr(member, "_end_step", lambda share, n, side: None if side < 0 else 240)
+        assert member.inner_outline(slanted.astype(np.float32), mask) is not None
