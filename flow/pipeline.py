@@ -333,8 +333,8 @@ def _track_frames(options: TrackOptions, setup: _Setup, method: Any, new_method:
     timings = tracks.timings_s or {}
     if timings.get("mask_past_outline_px", 0):
         filled = int(timings.get("rim_filled_frames", 0))
-        _note(notes, f"the mask reaches up to {timings['mask_past_outline_px']:g} px past a sharp step of its grey, "
-              "taken for the member's outline or end: the outline found there read "
+        _note(notes, f"the mask reaches up to {timings['mask_past_outline_px']:g} px past a sharp step of its grey "
+              "or texture, taken for the member's outline or end: the outline found there read "
               + (f"{filled} of {len(tracks.frame)} frames, and in those the mask's pixels beyond it took the member's "
                  "motion (in the others, their own)" if filled else "no frame, and the mask's pixels beyond it kept "
                  "their own flow")

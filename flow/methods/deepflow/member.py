@@ -174,9 +174,10 @@ RIM_MIN_PX = 2
 # A mask of more pixels is taken whole (its statistics across would cost about 0.5 GB and 5 s on a
 # whole 4K frame's mask; a band round a member in a 4K frame holds a few hundred thousand).
 MAX_CUT_PIXELS = 2_000_000
-# A mask drawn past its member's end (see _cut_ends): the member ends where fewer than END_SHARE
-# of a bin's pixels across the band look like it (and none comes back beyond), at most END_SPAN_PX
-# after a bin where at least END_BEFORE_SHARE did (of the middle half's share, both).
+# A mask drawn past its member's end (see _cut_ends): the member ends after the last bin across the
+# band where at least END_SHARE of the pixels look like it (of the middle half's share), at most
+# END_SPAN_PX after a bin where at least END_BEFORE_SHARE did; only the band's lines along it of which
+# at least END_BEFORE_SHARE look like it over its middle half count.
 END_SHARE = 0.5
 END_BEFORE_SHARE = 0.75
 END_SPAN_PX = 4
@@ -241,13 +242,8 @@ def _grow(reference: np.ndarray, mask: np.ndarray,
     within that reach; and the same grow let go SEARCH + 1 px further (without the cut of
     :func:`_beyond_steps`): where that one goes on past an edge of the first at its reach, the
     first was stopped by its reach, not by the scene (see :meth:`MemberEdges._profiles`)."""
-    values = reference[mask]
-    centre = float(np.median(values))
-    spread = MAD_TO_SIGMA * float(np.median(np.abs(values - centre)))
-    gradient = _one_sided_gradient(reference)
-    typical = float(np.median(gradient[mask]))
-    like = (np.abs(reference - centre) <= max(params.like_k * spread, params.like_floor)) & (
-        gradient <= params.like_k * max(typical, 0.5))
+    grey_like, smooth = _member_like(reference, _one_sided_gradient(reference), mask, params)
+    like = grey_like & smooth
     reach = _reach(mask, params.grow_px)
     allowed = (like & reach) | mask
     support = _connected_to(mask, allowed)
@@ -472,27 +468,30 @@ def _cut_across(reference: np.ndarray, mask: np.ndarray, xs: np.ndarray, ys: np.
         past = max(past, len(rim))
     if not past or ends[1] - ends[0] < 2 or (both and (ends[0] == 0 or ends[1] == n - 1)):
         return None
-    core = np.zeros(mask.shape, bool)
-    keep = (bins >= ends[0]) & (bins <= ends[1])
-    core[ys[keep], xs[keep]] = True
-    return core, past
+    return _keep(mask.shape, ys, xs, (bins >= ends[0]) & (bins <= ends[1])), past
 
 
 def _cut_ends(reference: np.ndarray, core: np.ndarray, params: MemberParams) -> tuple[np.ndarray, int] | None:
     """The part of a band ``core`` (the member's part of a mask, see :func:`inner_outline`)
     before the member's ends inside it, and how far it reaches past them (px, the longer side);
     None where the member runs through the band's ends, or where less than half the band would
-    be left (a band drawn mostly on the background).
+    be left.
 
     Along the band, its pixels are taken 1 px at a time from the middle outwards on each side.
     A pixel looks like the member as in :func:`_grow` (its grey and its one-sided gradient
-    against the middle half's). The member ends (see :func:`_end_step`) where a bin's share of
-    such pixels falls below END_SHARE of the middle half's and no bin beyond it to the band's
-    end comes back, END_SPAN_PX px or less after a bin that held at least END_BEFORE_SHARE of it
-    (a blurred edge's mixed pixels, a coded edge's ringing), in each half of the
-    band's width within 1 px (a mark or a bolt on the member comes back; a member that leaves
-    the band sideways steps in one half first). The step's first pixel and the one before are
-    left out.
+    against the middle half's); only the band's lines along it that look like the member over
+    its middle half count (a strip of the background beside the member, left where the cut
+    across found no outline, does not). The member ends after the last bin, from the middle
+    outwards, whose share of member-like pixels reaches END_SHARE of the middle half's (a mark,
+    a bolt or a weld before the end comes back to it), where (see :func:`_falls_at`) one of the
+    END_SPAN_PX bins before held at least END_BEFORE_SHARE of it (a blurred or a coded edge),
+    each half of the band's width falls there too (a member that leaves the band sideways falls
+    in one half first), at least RIM_MIN_PX + 1 bins lie beyond, and the grey steps there (at
+    least RIM_CONTRAST likeness tolerances, RIM_STEP_SHARE of it within END_SPAN_PX on either
+    side) or the texture does (fewer than END_SHARE of the pixels beyond pass the gradient test):
+    a slow change of the light along the member is neither. The step's first pixel and the one
+    before are left out. The member's level is the middle half's: a mask reaching past the end
+    by more than about 40 % of its length is not cut.
 
     A faint bar read through a mask 6 px past its tip, on a still wall with texture, read 0.30
     px RMSE, slope 0.87 (12 px past: 0.39 px, slope 0.76); the mask ending at the tip, 0.08
@@ -506,67 +505,112 @@ def _cut_ends(reference: np.ndarray, core: np.ndarray, params: MemberParams) -> 
     s = (xs - centre[0]) * normal[0] + (ys - centre[1]) * normal[1]
     bins = np.rint(t - t.min()).astype(np.int64)
     n = int(bins.max()) + 1
-    if n < 2 * RIM_MIN_PX + 2 * RIM_SPAN_PX + 3:
+    if n < 2 * RIM_MIN_PX + 2 * END_SPAN_PX + 3:
         return None
-    y0, y1, x0, x1 = max(int(ys.min()) - 1, 0), int(ys.max()) + 2, max(int(xs.min()) - 1, 0), int(xs.max()) + 2
-    box = reference[y0:y1, x0:x1].astype(np.float64)
-    gradient = _one_sided_gradient(box)[ys - y0, xs - x0]
+    y0, x0 = max(int(ys.min()) - 1, 0), max(int(xs.min()) - 1, 0)
+    box = reference[y0:int(ys.max()) + 2, x0:int(xs.max()) + 2].astype(np.float64)
     grey = box[ys - y0, xs - x0]
     middle = (bins >= n // 4) & (bins < n - n // 4)
-    level = float(np.median(grey[middle]))
-    spread = MAD_TO_SIGMA * float(np.median(np.abs(grey[middle] - level)))
-    typical = float(np.median(gradient[middle]))
-    like = (np.abs(grey - level) <= max(params.like_k * spread, params.like_floor)) & (
-        gradient <= params.like_k * max(typical, 0.5))
-    # The band's lines along it that look like the member over its middle half: a strip of the
-    # background beside the member, where the cut across found no outline, is left out.
+    grey_like, smooth = _member_like(grey, _one_sided_gradient(box)[ys - y0, xs - x0], middle, params)
+    like = grey_like & smooth
     lines = np.rint(s - s.min()).astype(np.int64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        width = int(lines.max()) + 1
-        on_member = (np.bincount(lines[middle], weights=like[middle], minlength=width)
-                     / np.bincount(lines[middle], minlength=width))[lines] >= END_BEFORE_SHARE
+    on_member = _share(lines, like, middle)[lines] >= END_BEFORE_SHARE
     if np.count_nonzero(on_member) < 0.5 * len(bins):
         return None
     half = s > np.median(s[on_member])
-    shares = []  # each bin's share of member-like pixels: all of its pixels, each half's (NaN: none there)
-    for sel in (on_member, on_member & ~half, on_member & half):
-        counts = np.bincount(bins[sel], minlength=n)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            shares.append(np.where(counts > 0, np.bincount(bins[sel], weights=like[sel], minlength=n) / counts, np.nan))
+    halves = [on_member & ~half, on_member & half] if len(np.unique(lines[on_member])) >= 4 else []
+    shares = [_share(bins, like, sel, n) for sel in [on_member] + halves]
+    means = _share(bins, grey, on_member, n)
+    member = grey[middle & on_member]
+    level = float(np.median(member))
+    tolerance = max(params.like_k * MAD_TO_SIGMA * float(np.median(np.abs(member - level))), params.like_floor)
     ends = [0, n - 1]
     past = 0
     for index, side in ((1, 1), (0, -1)):
-        firsts = [_end_step(share, n, side) for share in shares]
-        if None in firsts or max(firsts) - min(firsts) > 1:
+        first = _end_step(shares[0], n, side)
+        if first is None or not all(_falls_at(share, first, side) for share in shares[1:]):
             continue
-        first = firsts[0]
+        beyond = on_member & (side * (bins - first) >= 0)
+        if not (_grey_steps(means, first, side, level, tolerance)
+                or np.mean(smooth[beyond]) < END_SHARE * np.mean(smooth[middle & on_member])):
+            continue  # a slow change of the light, no end
         ends[index] = first - 2 * side
         past = max(past, (n - first) if side > 0 else first + 1)
     if not past or ends[1] - ends[0] < n // 2:
         return None
-    keep = (bins >= ends[0]) & (bins <= ends[1])
-    cut = np.zeros(core.shape, bool)
-    cut[ys[keep], xs[keep]] = True
-    return cut, past
+    return _keep(core.shape, ys, xs, (bins >= ends[0]) & (bins <= ends[1])), past
+
+
+def _share(bins: np.ndarray, values: np.ndarray, sel: np.ndarray, n: int | None = None) -> np.ndarray:
+    """The mean of ``values`` (a share where they are bools) over the pixels ``sel`` of each of
+    the ``bins`` (``n`` of them; NaN where a bin holds none of them)."""
+    n = int(bins.max()) + 1 if n is None else n
+    counts = np.bincount(bins[sel], minlength=n)
+    sums = np.bincount(bins[sel], weights=values[sel].astype(np.float64), minlength=n)
+    return np.divide(sums, counts, out=np.full(n, np.nan), where=counts > 0)
 
 
 def _end_step(share: np.ndarray, n: int, side: int) -> int | None:
-    """:func:`_cut_ends`'s step on one ``side`` of the band (``share``: each bin's share of
-    member-like pixels): the first bin from the middle outwards below END_SHARE with none
-    beyond it above, one of the END_SPAN_PX bins before at least END_BEFORE_SHARE, and at least
-    RIM_MIN_PX beyond it; the shares taken as fractions of the middle half's (a strip of
-    background left in the band beside the member lowers every bin's)."""
+    """:func:`_cut_ends`'s end on one ``side`` of the band (``share``: each bin's share of
+    member-like pixels): the bin after the last one, from the middle outwards, whose share
+    reaches END_SHARE of the middle half's, where the share falls (:func:`_falls_at`) and at
+    least RIM_MIN_PX + 1 bins lie beyond; None where there is none."""
     walk = np.arange(n // 2, n) if side > 0 else np.arange(n // 2, -1, -1)
-    member = float(np.nanmedian(share[n // 4:n - n // 4]))  # (below 1 where a strip of background is left)
-    below = np.nonzero(share[walk] < END_SHARE * member)[0]
-    if not below.size or below[0] == 0:
+    member = float(np.nanmedian(share[n // 4:n - n // 4]))
+    liked = np.nonzero(share[walk] >= END_SHARE * member)[0]
+    if not liked.size or len(walk) - liked[-1] - 1 < RIM_MIN_PX + 1:
         return None
-    rim = walk[below[0]:]
-    before = share[walk[max(below[0] - END_SPAN_PX, 0):below[0]]]  # (a blurred or a coded edge's ringing)
-    if (len(rim) < RIM_MIN_PX + 1 or np.any(share[rim] >= END_SHARE * member)
-            or np.nanmax(before) < END_BEFORE_SHARE * member):
-        return None
-    return int(rim[0])
+    first = int(walk[liked[-1] + 1])
+    return first if _falls_at(share, first, side) else None
+
+
+def _falls_at(share: np.ndarray, first: int, side: int) -> bool:
+    """Whether the member-like ``share`` of the bins falls at bin ``first`` going ``side``
+    (+1, -1): one of the END_SPAN_PX bins before held at least END_BEFORE_SHARE of the middle
+    half's share, and the bins from ``first`` on hold on average less than END_SHARE of it."""
+    n = len(share)
+    member = float(np.nanmedian(share[n // 4:n - n // 4]))
+    before = share[[b for b in first - side * np.arange(1, END_SPAN_PX + 1) if 0 <= b < n]]
+    after = share[first::side] if side > 0 else share[first::-1]
+    before, after = before[np.isfinite(before)], after[np.isfinite(after)]
+    return bool(np.isfinite(member) and member > 0 and before.size and after.size
+                and before.max() >= END_BEFORE_SHARE * member and after.mean() < END_SHARE * member)
+
+
+def _grey_steps(means: np.ndarray, first: int, side: int, level: float, tolerance: float) -> bool:
+    """Whether the band's mean grey (``means``, per bin) steps at bin ``first`` going ``side``:
+    beyond END_SPAN_PX it lies at least RIM_CONTRAST ``tolerance`` off the member's ``level``,
+    and RIM_STEP_SHARE of that change happens within END_SPAN_PX on either side of ``first``
+    (a shading's ramp, or a spotlight's falloff, changes the grey slowly)."""
+    n = len(means)
+    rim = np.arange(first, n) if side > 0 else np.arange(first, -1, -1)
+    far = means[rim[min(END_SPAN_PX, len(rim) - 1):]]
+    change = float(np.nanmedian(far)) - level
+    before = means[int(np.clip(first - side * END_SPAN_PX, 0, n - 1))]
+    after = means[rim[min(END_SPAN_PX - 1, len(rim) - 1)]]
+    return bool(abs(change) >= RIM_CONTRAST * tolerance
+                and abs(after - before) >= RIM_STEP_SHARE * abs(change))
+
+
+def _member_like(grey: np.ndarray, gradient: np.ndarray, sample: np.ndarray,
+                 params: MemberParams) -> tuple[np.ndarray, np.ndarray]:
+    """Which pixels (``grey``, their ``gradient``: :func:`_one_sided_gradient`) look like the
+    member's pixels ``sample`` (an index of them): their grey within ``like_k`` robust standard
+    deviations of the sample's (at least ``like_floor``), and their gradient below ``like_k`` times
+    the sample's typical one (at least 0.5 grey levels); the two tests apart."""
+    values = grey[sample]
+    centre = float(np.median(values))
+    spread = MAD_TO_SIGMA * float(np.median(np.abs(values - centre)))
+    typical = float(np.median(gradient[sample]))
+    return (np.abs(grey - centre) <= max(params.like_k * spread, params.like_floor),
+            gradient <= params.like_k * max(typical, 0.5))
+
+
+def _keep(shape: tuple[int, int], ys: np.ndarray, xs: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """A mask of ``shape`` holding the pixels ``ys, xs`` where ``keep``."""
+    cut = np.zeros(shape, bool)
+    cut[ys[keep], xs[keep]] = True
+    return cut
 
 
 def _first_step(out: np.ndarray, grey: np.ndarray, level: float, tolerance: float, grow_px: int,
