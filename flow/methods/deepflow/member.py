@@ -165,8 +165,9 @@ STEP_STAY_PX = 6
 STEP_PARTS = 4
 # A mask drawn past its member's outlines onto the background (see inner_outline): the step of the
 # mean grey that ends the member inside the mask takes at least RIM_STEP_SHARE of its change within
-# RIM_SPAN_PX, changes at least RIM_CONTRAST likeness tolerances, and at least RIM_MIN_PX of the
-# mask lie beyond its first pixel (a mask drawn on the outline reads as one drawn inside it).
+# RIM_SPAN_PX, changes at least RIM_CONTRAST likeness tolerances (of the mean grey of the mask's
+# lines along it, or across it at an end: see _cut_ends), and at least RIM_MIN_PX of the mask lie
+# beyond its first pixel (a mask drawn on the outline reads as one drawn inside it).
 RIM_STEP_SHARE = 0.6
 RIM_SPAN_PX = 3
 RIM_CONTRAST = 2.0
@@ -481,15 +482,18 @@ def _cut_ends(reference: np.ndarray, core: np.ndarray, params: MemberParams) -> 
     A pixel looks like the member as in :func:`_grow` (its grey and its one-sided gradient
     against the middle half's); only the band's lines along it that look like the member over
     its middle half count (a strip of the background beside the member, left where the cut
-    across found no outline, does not). The member ends after the last bin, from the middle
-    outwards, whose share of member-like pixels reaches END_SHARE of the middle half's (a mark,
-    a bolt or a weld before the end comes back to it), where (see :func:`_falls_at`) one of the
-    END_SPAN_PX bins before held at least END_BEFORE_SHARE of it (a blurred or a coded edge),
-    each half of the band's width falls there too (a member that leaves the band sideways falls
-    in one half first), at least RIM_MIN_PX + 1 bins lie beyond, and the grey steps there (at
-    least RIM_CONTRAST likeness tolerances, RIM_STEP_SHARE of it within END_SPAN_PX on either
-    side) or the texture does (fewer than END_SHARE of the pixels beyond pass the gradient test):
-    a slow change of the light along the member is neither. The step's first pixel and the one
+    across found no outline, does not). The member ends after the last run of END_SPAN_PX bins,
+    from the middle outwards, whose shares of member-like pixels reach END_SHARE of the middle
+    half's (a mark, a bolt or a weld before the end comes back to it), where (see
+    :func:`_falls_at`) one of the END_SPAN_PX bins before held at least END_BEFORE_SHARE of it (a
+    blurred or a coded edge), each half of the band's width falls there too (a member that
+    leaves the band sideways falls in one half first; not asked of a band of fewer than 4
+    lines), at least RIM_MIN_PX + 1 bins lie beyond, and the bins' mean grey steps there
+    (:func:`_grey_steps`: at least RIM_CONTRAST likeness tolerances of the middle half's bins'
+    means) or the pixels beyond are rougher than the member's (:func:`_rougher`): a slow change
+    of the light along the member is neither. An end slanting across the band is cut where half
+    of it has gone (an end 10 rows aslant across a 32 px band keeps a wedge of the background up
+    to 3 rows deep; 11 rows or more, the halves refuse it). The step's first pixel and the one
     before are left out. The member's level is the middle half's: a mask reaching past the end
     by more than about 40 % of its length is not cut.
 
@@ -521,9 +525,12 @@ def _cut_ends(reference: np.ndarray, core: np.ndarray, params: MemberParams) -> 
     halves = [on_member & ~half, on_member & half] if len(np.unique(lines[on_member])) >= 4 else []
     shares = [_share(bins, like, sel, n) for sel in [on_member] + halves]
     means = _share(bins, grey, on_member, n)
-    member = grey[middle & on_member]
-    level = float(np.median(member))
-    tolerance = max(params.like_k * MAD_TO_SIGMA * float(np.median(np.abs(member - level))), params.like_floor)
+    # The member's level and the likeness tolerance of a bin's mean grey along it, from the
+    # middle half's bins (a textured member's pixels spread far more than its bins' means).
+    along = means[n // 4:n - n // 4]
+    along = along[np.isfinite(along)]
+    level = float(np.median(along))
+    tolerance = max(params.like_k * MAD_TO_SIGMA * float(np.median(np.abs(along - level))), params.like_floor)
     ends = [0, n - 1]
     past = 0
     for index, side in ((1, 1), (0, -1)):
@@ -531,8 +538,7 @@ def _cut_ends(reference: np.ndarray, core: np.ndarray, params: MemberParams) -> 
         if first is None or not all(_falls_at(share, first, side) for share in shares[1:]):
             continue
         beyond = on_member & (side * (bins - first) >= 0)
-        if not (_grey_steps(means, first, side, level, tolerance)
-                or np.mean(smooth[beyond]) < END_SHARE * np.mean(smooth[middle & on_member])):
+        if not (_grey_steps(means, first, side, level, tolerance) or _rougher(smooth, beyond, middle & on_member)):
             continue  # a slow change of the light, no end
         ends[index] = first - 2 * side
         past = max(past, (n - first) if side > 0 else first + 1)
@@ -550,17 +556,36 @@ def _share(bins: np.ndarray, values: np.ndarray, sel: np.ndarray, n: int | None 
     return np.divide(sums, counts, out=np.full(n, np.nan), where=counts > 0)
 
 
+def _middle_share(share: np.ndarray) -> float:
+    """The median of the middle half's bins of ``share`` that hold pixels (NaN where none does)."""
+    middle = share[len(share) // 4:len(share) - len(share) // 4]
+    middle = middle[np.isfinite(middle)]
+    return float(np.median(middle)) if middle.size else float("nan")
+
+
+def _rougher(smooth: np.ndarray, beyond: np.ndarray, member: np.ndarray) -> bool:
+    """Whether the pixels ``beyond`` an end are rougher than the ``member``'s: the share of them
+    passing the gradient test (``smooth``) is below END_SHARE of the member's share."""
+    return bool(np.mean(smooth[beyond]) < END_SHARE * np.mean(smooth[member]))
+
+
 def _end_step(share: np.ndarray, n: int, side: int) -> int | None:
     """:func:`_cut_ends`'s end on one ``side`` of the band (``share``: each bin's share of
-    member-like pixels): the bin after the last one, from the middle outwards, whose share
-    reaches END_SHARE of the middle half's, where the share falls (:func:`_falls_at`) and at
-    least RIM_MIN_PX + 1 bins lie beyond; None where there is none."""
+    member-like pixels): the bin after the last run of END_SPAN_PX bins, from the middle
+    outwards, whose shares reach END_SHARE of the middle half's, where the share falls
+    (:func:`_falls_at`) and at least RIM_MIN_PX + 1 bins lie beyond; None where there is none."""
     walk = np.arange(n // 2, n) if side > 0 else np.arange(n // 2, -1, -1)
-    member = float(np.nanmedian(share[n // 4:n - n // 4]))
-    liked = np.nonzero(share[walk] >= END_SHARE * member)[0]
-    if not liked.size or len(walk) - liked[-1] - 1 < RIM_MIN_PX + 1:
+    member = _middle_share(share)
+    liked = share[walk] >= END_SHARE * member
+    # Only runs of END_SPAN_PX such bins are the member's (on a narrow band a few of the
+    # background's pixels that happen to look like the member fill a bin now and then).
+    runs = np.nonzero(np.convolve(liked, np.ones(END_SPAN_PX), "valid") >= END_SPAN_PX)[0]
+    if not runs.size:
         return None
-    first = int(walk[liked[-1] + 1])
+    last = int(runs[-1]) + END_SPAN_PX - 1
+    if len(walk) - last - 1 < RIM_MIN_PX + 1:
+        return None
+    first = int(walk[last + 1])
     return first if _falls_at(share, first, side) else None
 
 
@@ -569,7 +594,7 @@ def _falls_at(share: np.ndarray, first: int, side: int) -> bool:
     (+1, -1): one of the END_SPAN_PX bins before held at least END_BEFORE_SHARE of the middle
     half's share, and the bins from ``first`` on hold on average less than END_SHARE of it."""
     n = len(share)
-    member = float(np.nanmedian(share[n // 4:n - n // 4]))
+    member = _middle_share(share)
     before = share[[b for b in first - side * np.arange(1, END_SPAN_PX + 1) if 0 <= b < n]]
     after = share[first::side] if side > 0 else share[first::-1]
     before, after = before[np.isfinite(before)], after[np.isfinite(after)]
@@ -580,12 +605,17 @@ def _falls_at(share: np.ndarray, first: int, side: int) -> bool:
 def _grey_steps(means: np.ndarray, first: int, side: int, level: float, tolerance: float) -> bool:
     """Whether the band's mean grey (``means``, per bin) steps at bin ``first`` going ``side``:
     beyond END_SPAN_PX it lies at least RIM_CONTRAST ``tolerance`` off the member's ``level``,
-    and RIM_STEP_SHARE of that change happens within END_SPAN_PX on either side of ``first``
-    (a shading's ramp, or a spotlight's falloff, changes the grey slowly)."""
+    and RIM_STEP_SHARE of that change happens between END_SPAN_PX before ``first`` and
+    END_SPAN_PX - 1 after (a shading's ramp, or a spotlight's falloff, changes the grey slowly)."""
     n = len(means)
     rim = np.arange(first, n) if side > 0 else np.arange(first, -1, -1)
     far = means[rim[min(END_SPAN_PX, len(rim) - 1):]]
-    change = float(np.nanmedian(far)) - level
+    far = far[np.isfinite(far)]
+    if not far.size:  # (no pixel of the member's lines there: the rim's nearer bins, or none)
+        far = means[rim][np.isfinite(means[rim])]
+        if not far.size:
+            return False
+    change = float(np.median(far)) - level
     before = means[int(np.clip(first - side * END_SPAN_PX, 0, n - 1))]
     after = means[rim[min(END_SPAN_PX - 1, len(rim) - 1)]]
     return bool(abs(change) >= RIM_CONTRAST * tolerance
