@@ -223,6 +223,21 @@ def fmt(value: float | None, digits: int = 3) -> str:
     return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
 
 
+def scored(result: dict) -> str:
+    """One run's ``run_method`` result as "RMSE px / slope / 2-sigma coverage" (or its error)."""
+    if "rmse_px" not in result:
+        return result.get("error", "?")
+    return f"{fmt(result.get('rmse_px'))} / {fmt(result.get('slope'), 4)} / {fmt(result.get('coverage_2sigma'), 2)}"
+
+
+def method_table(keys: list[str], rows: list[tuple[list[str], list[dict]]], methods: list[str]) -> str:
+    """A Markdown table: the ``keys`` columns, then each of the ``methods``' :func:`scored` run."""
+    lines = ["| " + " | ".join(keys) + " | " + " | ".join(f"{m} RMSE px / slope / 2-sigma" for m in methods) + " |",
+             "|" + "---|" * (len(keys) + len(methods))]
+    lines += ["| " + " | ".join(values) + " | " + " | ".join(scored(c) for c in cells) + " |" for values, cells in rows]
+    return "\n".join(lines)
+
+
 def table(results: dict, floors: dict, moto: dict, methods: list[str], dic: dict | None = None) -> str:
     lines = ["| clip | floor px (interior / with outline) | method | RMSE px | slope | max err px | "
              "measured | 2-sigma coverage | post-recovery bias px | occluded flagged | s/frame |",

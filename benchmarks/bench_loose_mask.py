@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_accuracy import BENCH, fmt, publish, read_clip, run_method  # noqa: E402  (a sibling script)
+from bench_accuracy import BENCH, method_table, publish, read_clip, run_method, scored  # noqa: E402  (a sibling script)
 
 # The mask is a band at least this many times longer than wide (the member's long outlines
 # run along it).
@@ -71,21 +71,12 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 path = Path(tmp) / f"{clip}-{past}.png"
                 cv2.imwrite(str(path), wide.astype(np.uint8) * 255)
-                cells = []
-                for name in methods:
-                    r = run_method(name, folders[clip], {**meta, "mask": str(path)}, Path(tmp) / f"{clip}-{past}-{name}.csv")
-                    cells.append(r)
-                    print(f"{clip:14s} +{past:2d} px {name:10s} "
-                          + (f"rmse {r['rmse_px']:.3f} slope {r['slope']:.4f} cov {r['coverage_2sigma']:.2f}"
-                             if "rmse_px" in r else r.get("error", "?")), file=sys.stderr, flush=True)
-                rows.append((clip, past, cells))
-    head = "| clip | past px | " + " | ".join(f"{m} RMSE px / slope / 2-sigma" for m in methods) + " |"
-    lines = [head, "|" + "---|" * (2 + len(methods))]
-    for clip, past, cells in rows:
-        lines.append(f"| {clip} | {past} | " + " | ".join(
-            f"{fmt(c.get('rmse_px'))} / {fmt(c.get('slope'), 4)} / {fmt(c.get('coverage_2sigma'), 2)}"
-            if "rmse_px" in c else c.get("error", "?") for c in cells) + " |")
-    return publish("\n".join(lines), args.out)
+                cells = [run_method(name, folders[clip], {**meta, "mask": str(path)}, Path(tmp) / f"{clip}-{past}-{name}.csv")
+                         for name in methods]
+                for name, r in zip(methods, cells, strict=True):
+                    print(f"{clip:14s} +{past:2d} px {name:10s} {scored(r)}", file=sys.stderr, flush=True)
+                rows.append(([clip, str(past)], cells))
+    return publish(method_table(["clip", "past px"], rows, methods), args.out)
 
 
 if __name__ == "__main__":
