@@ -309,8 +309,7 @@ def _beyond_steps(reference: np.ndarray, mask: np.ndarray, support: np.ndarray,
     box = (slice(y0, y1), slice(x0, x1))
     mask, support, reference = mask[box], support[box], reference[box]
     grid_y, grid_x = np.mgrid[y0:y1, x0:x1]
-    s_all = (grid_x - centre[0]) * normal[0] + (grid_y - centre[1]) * normal[1]
-    t_all = (grid_x - centre[0]) * along[0] + (grid_y - centre[1]) * along[1]
+    s_all, t_all = _coordinate(grid_x, grid_y, centre, normal), _coordinate(grid_x, grid_y, centre, along)
     s_mask, t_mask = s_all[mask], t_all[mask]
     beside = (t_all >= t_mask.min()) & (t_all <= t_mask.max())
     lo, hi = float(s_mask.min()), float(s_mask.max())
@@ -336,6 +335,11 @@ def _beyond_steps(reference: np.ndarray, mask: np.ndarray, support: np.ndarray,
         if np.count_nonzero(leak & beside) >= 0.5 * length:
             beyond[box] |= support & (out >= step)
     return beyond
+
+
+def _coordinate(xs: np.ndarray, ys: np.ndarray, centre: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """The coordinates of the points ``xs, ys`` along the unit vector ``axis`` from ``centre``."""
+    return (xs - centre[0]) * axis[0] + (ys - centre[1]) * axis[1]
 
 
 def _band_axes(xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -417,8 +421,7 @@ def _cut_across(reference: np.ndarray, mask: np.ndarray, xs: np.ndarray, ys: np.
                 both: bool) -> tuple[np.ndarray, int] | None:
     """:func:`inner_outline` across ``normal`` (the mask's pixels ``xs, ys`` about ``centre``);
     ``both``: only where the member ends inside the mask on both sides."""
-    s = (xs - centre[0]) * normal[0] + (ys - centre[1]) * normal[1]
-    t = (xs - centre[0]) * along[0] + (ys - centre[1]) * along[1]
+    s, t = _coordinate(xs, ys, centre, normal), _coordinate(xs, ys, centre, along)
     bins = np.rint(s - s.min()).astype(np.int64)
     n = int(bins.max()) + 1
     if n < 2 * RIM_MIN_PX + 2 * RIM_SPAN_PX + 3:
@@ -505,8 +508,7 @@ def _cut_ends(reference: np.ndarray, core: np.ndarray, params: MemberParams) -> 
     if found is None:
         return None
     centre, normal, along = found
-    t = (xs - centre[0]) * along[0] + (ys - centre[1]) * along[1]
-    s = (xs - centre[0]) * normal[0] + (ys - centre[1]) * normal[1]
+    s, t = _coordinate(xs, ys, centre, normal), _coordinate(xs, ys, centre, along)
     bins = np.rint(t - t.min()).astype(np.int64)
     n = int(bins.max()) + 1
     if n < 2 * RIM_MIN_PX + 2 * END_SPAN_PX + 3:
@@ -527,10 +529,10 @@ def _cut_ends(reference: np.ndarray, core: np.ndarray, params: MemberParams) -> 
     means = _share(bins, grey, on_member, n)
     # The member's level and the likeness tolerance of a bin's mean grey along it, from the
     # middle half's bins (a textured member's pixels spread far more than its bins' means).
-    along = means[n // 4:n - n // 4]
-    along = along[np.isfinite(along)]
-    level = float(np.median(along))
-    tolerance = max(params.like_k * MAD_TO_SIGMA * float(np.median(np.abs(along - level))), params.like_floor)
+    middle_means = means[n // 4:n - n // 4]
+    middle_means = middle_means[np.isfinite(middle_means)]
+    level = float(np.median(middle_means))
+    tolerance = max(params.like_k * MAD_TO_SIGMA * float(np.median(np.abs(middle_means - level))), params.like_floor)
     ends = [0, n - 1]
     past = 0
     for index, side in ((1, 1), (0, -1)):
