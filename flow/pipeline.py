@@ -339,6 +339,10 @@ def _track_frames(options: TrackOptions, setup: _Setup, method: Any, new_method:
                  "motion (in the others, their own)" if filled else "no frame, and the mask's pixels beyond it kept "
                  "their own flow")
               + "; draw the mask inside the structure to keep to its own pixels")
+    if timings.get("texture_light_blocks", 0):
+        _note(notes, f"the light changed across the mask's texture in {int(timings['texture_light_blocks'])} of its "
+              "fits (a shadow's or a cloud's edge passing over it): those were read with a gain and offset of "
+              "their own in every block of 16 px or more (texture_light_blocks in the sidecar)")
     tracks = replace(tracks, time_s=time_s)
     for warning in caught:
         notes.append(str(warning.message))

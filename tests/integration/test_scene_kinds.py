@@ -65,6 +65,7 @@ def _scene(kind: str, seed: int, noise: float = 1.0) -> Clip:
     inside = np.zeros(fine, bool)  # where the member covers the reference (fine grid)
     axis = "x"
     blur_px = 0.0  # a lens out of focus: the frame's Gaussian blur (px), before the sensor's noise
+    light = None  # the light falling on the scene in frame t: a gain over the frame (1: as in the reference)
     if kind == "panel":  # a rigid panel translating over a different wall
         amp = 3.0 * np.sin(2 * np.pi * 1.7 * t_axis)
         inside[30 * UP:130 * UP, 40 * UP:170 * UP] = True
@@ -92,6 +93,16 @@ def _scene(kind: str, seed: int, noise: float = 1.0) -> Clip:
 
         def motion(t, x, y):
             return np.zeros_like(x), np.full_like(x, amp[t])
+    elif kind == "shadow":  # a textured panel, the soft edge of a shadow sweeping across it (a cloud's, a truck's)
+        amp = 2.0 * np.sin(2 * np.pi * 1.7 * t_axis)
+        inside[30 * UP:130 * UP, 40 * UP:170 * UP] = True
+        mask[45:115, 55:155] = True
+
+        def light(t):  # 35 % darker beyond the edge (4 px wide), which crosses the mask over the clip
+            return 1.0 - 0.35 / (1.0 + np.exp(-(np.arange(WIDTH) - (40.0 + 130.0 * t / FRAMES)) / 4.0))[None, :]
+
+        def motion(t, x, y):
+            return np.full_like(x, amp[t]), np.zeros_like(x)
     elif kind == "whole-view":  # everything moves, no still background
         amp = 2.5 * np.sin(2 * np.pi * 2.1 * t_axis)
         inside[:] = True
@@ -188,6 +199,8 @@ def _scene(kind: str, seed: int, noise: float = 1.0) -> Clip:
     for t in range(FRAMES):
         cover = np.clip(_warp(coverage, motion, t), 0, 1)
         image = _down(cover * _warp(member, motion, t) + (1 - cover) * wall)
+        if light is not None:
+            image = image * light(t)
         if blur_px:
             image = cv2.GaussianBlur(image, (0, 0), blur_px)
         image += noise * rng.standard_normal(image.shape)
@@ -233,14 +246,17 @@ def score(clip: Clip, out: Path) -> tuple[float, float, float, dict]:
 # The default must not lose to a plain baseline on any kind (within 10 %, or a floor of a few
 # hundredths of a pixel that H.264 leaves on every reading), read the scale right and keep
 # its frames valid.
-KINDS = ["panel", "whole-view", "rotation", "tiny", "large", "round", "along", "windows", "stripes"]
+KINDS = ["panel", "whole-view", "rotation", "tiny", "large", "round", "along", "windows", "stripes", "shadow"]
 # The shaded round member with a faint texture: its outline (the limb darkening into the wall, no
 # step to fit) once read 0.19 px RMS, 6 % long, with its own uncertainty at 0.3-1.8 px, where DIS
 # read 0.15 (an xfail until 2026-12-03): an outline that imprecise is now refused and the dense
 # flow read (0.08 px). A girder in hazard tape, whose stripes' grey levels overlap the wall's:
 # its support grew into the wall, the outline was refused and the texture fit, blind to the
 # motion along the stripes but for the faint paint under them, read 0.113 px (DIS 0.059) before
-# 2026-12-05; 0.056 now.
+# 2026-12-05; 0.056 now. A textured panel under a shadow's edge sweeping across the mask: the
+# texture fit, with one gain and offset for the region, read the light that changed across it as
+# motion, 0.09-0.20 px RMS on three seeds where DIS read 0.045, before 2026-12-07; each block of
+# the region has its own gain and offset now (regionfit.GAIN_BLOCK_PX): 0.042.
 @pytest.mark.parametrize("kind", KINDS)
 def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) -> None:
     clip = _scene(kind, seed=40 + KINDS.index(kind))
@@ -256,6 +272,12 @@ def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) 
         # whose edges do not show it (DIS 10 % short, the default 3 %; 60 % short before the
         # paint's own fit read it): no worse than DIS by more than 0.03.
         assert abs(ours[1] - 1.0) <= 0.07 and ours[1] >= base[1] - 0.03
+    elif kind == "shadow":
+        # A light changing across the frame costs every method a little of the scale here (DIS
+        # reads this clip 1.4 % short, the default 1.7 %; three other draws of the kind, 48
+        # frames: 0.1-0.9 %, DIS 0.5-1.7 %): no worse than DIS by more than 0.01.
+        assert abs(ours[1] - 1.0) <= 0.03 and ours[1] >= base[1] - 0.01
+        assert ours[3]["texture_light_blocks"] >= 0.5 * FRAMES
     else:
         assert abs(ours[1] - 1.0) <= 0.015
     assert ours[2] >= 0.95
@@ -265,7 +287,7 @@ def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) 
     choices = [k for k in timings if k.startswith("why_") and k.removeprefix("why_") not in REFUSALS]
     assert sum(timings[k] for k in choices) == timings["full_frames"]
     assert timings["outline_models_left_out"] == 0  # sharp scenes: every outline model draws them
-    if kind in ("panel", "whole-view", "rotation", "windows"):  # strong texture: the texture fit
+    if kind in ("panel", "whole-view", "rotation", "windows", "shadow"):  # strong texture: the texture fit
         assert timings["affine_readings"] >= 0.9 * FRAMES and timings["why_texture_fixes_motion"] >= 1
     if kind == "along":  # the outline across the bar, the paint's own fit along it
         assert timings["outline_readings"] >= 0.9 * FRAMES and timings["along_texture"] >= 0.5 * FRAMES

@@ -12,6 +12,7 @@ import pytest
 import flow.methods.deepflow.method as deepflow_module
 from flow.methods import registry
 from flow.methods.deepflow import variational
+from flow.methods.deepflow.regionfit import RegionMotion
 
 sys.path.insert(0, str(Path(__file__).parent))  # shared synthetic pairs
 from _deepflow_synth import (  # noqa: E402
@@ -269,7 +270,8 @@ def test_a_texture_too_weak_to_be_taken_is_not_fitted(monkeypatch):
     region = method._regions[0]
     assert region.texture is not None and min(region.texture.gradient_rms) < deepflow_module.MIN_TEXTURE_GRADIENT
     calls = []
-    monkeypatch.setattr(type(region.texture), "fit", lambda self, *a, **k: calls.append(1))
+    failed = RegionMotion(np.zeros(6), False, (float("nan"), float("nan")), float("nan"), 0, 0.0)
+    monkeypatch.setattr(type(region.texture), "fit", lambda self, *a, **k: calls.append(1) or failed)
     for frame in frames:
         flow = method.calc(reference, frame)
         assert np.isfinite(flow[..., 0][poi]).all()

@@ -89,6 +89,63 @@ def test_a_change_of_lighting_does_not_move_the_reading() -> None:
     found = fit.fit(to_u8(current), np.zeros(6))
     u, _ = fit.field(found.params, rows, cols)
     assert found.converged and abs(u.mean() - 0.3) < 0.01
+    assert not found.light_varies  # (the same change over the whole region: one gain takes it)
+
+
+
+@pytest.mark.parametrize("edge_col", [60.0, 80.0, 100.0])
+def test_a_shadows_edge_across_the_region_does_not_move_the_reading(edge_col: float) -> None:
+    # A soft shadow (35 % darker, its edge 4 px wide) lying across part of the region in the
+    # frame but not in the reference: light that changes across the region, which one gain and
+    # offset for the whole region cannot take (a textured panel under a moving shadow: 0.09-0.20
+    # px RMS through the CLI, DIS 0.045). It is found, and each block's own gain takes it.
+    reference = textured(120, 160, seed=7)
+    shadow = 1.0 - 0.35 / (1.0 + np.exp(-(np.arange(160) - edge_col) / 4.0))
+    current = shifted(reference, 0.3, -0.2) * shadow[None, :]
+    rows, cols = _region(reference.shape, (20, 100, 30, 130))
+    readings = {}
+    for local in (True, False):
+        fit = RegionFit(to_u8(reference), rows, cols, local_light=local)
+        found = fit.fit(to_u8(current), np.zeros(6))
+        u, v = fit.field(found.params, rows, cols)
+        assert found.light_varies == local
+        assert found.converged or not local
+        readings[local] = np.hypot(u.mean() - 0.3, v.mean() + 0.2)
+    assert readings[True] < 0.01
+    # (The test can fail: one gain for the region reads the shadow as motion, or does not
+    # converge on it.)
+    assert readings[False] > 3 * readings[True] and readings[False] > 0.02
+
+
+@pytest.mark.parametrize("blob_px", [2.0, 8.0])
+def test_where_the_light_did_not_change_across_the_region_one_gain_reads_it(blob_px: float) -> None:
+    # A faint, coarse texture (blobs of 8-20 px, 6 grey levels) tells much of its motion by the
+    # grey of areas larger than a block: a gain and offset for every block would throw that away
+    # (0.07 -> 0.21 px on such textures under noise). Without a change of light across the region,
+    # a light that changed over the whole frame included, it is read with one gain, as before.
+    rng = np.random.default_rng(3)
+    image = sum(s * ndimage.gaussian_filter(rng.standard_normal((160, 200)), s) for s in (blob_px, 2.5 * blob_px))
+    reference = 128 + 6 * (image - image.mean()) / image.std()
+    current = 0.9 * shifted(reference, 0.3, 0.1) + 5
+    noisy = [to_u8(x + rng.standard_normal(x.shape)) for x in (reference, current)]
+    rows, cols = _region(reference.shape, (30, 130, 30, 170))
+    found = [RegionFit(noisy[0], rows, cols, local_light=local).fit(noisy[1], np.zeros(6)) for local in (True, False)]
+    assert not found[0].light_varies and not found[1].light_varies
+    assert np.array_equal(found[0].params, found[1].params)
+
+
+def test_the_gain_blocks_widen_with_a_large_regions_subsample() -> None:
+    # A region subsampled 1 in 9 (MAX_POINTS) gets blocks 3 times as wide: each holds about as
+    # many of the fit's pixels as a block of a region fitted whole (a block of one or two pixels
+    # has no texture left once its mean is taken off).
+    reference = textured(330, 330, seed=5)
+    rows, cols = _region(reference.shape, (5, 305, 5, 305))
+    whole = RegionFit(reference, rows, cols, max_points=rows.size)
+    sparse = RegionFit(reference, rows, cols, max_points=rows.size // 9)
+    per_block = [np.bincount(fit._gain_block).mean() for fit in (whole, sparse)]
+    assert per_block[0] == pytest.approx(regionfit.GAIN_BLOCK_PX ** 2, rel=0.1)
+    assert per_block[1] == pytest.approx(per_block[0], rel=0.2)
+    assert RegionFit(reference, rows, cols, local_light=False)._gain_block is None
 
 
 @pytest.mark.parametrize(("presmooth", "blob_px", "grey", "max_error"), [(0.0, 2.0, 6.0, 0.025), (0.7, 2.0, 3.0, 0.02)])

@@ -1143,7 +1143,7 @@ class DeepFlow(DenseMethod):
         self.counts = dict.fromkeys(("full_frames", "warm_frames", "hidden_frames", "outline_readings", "affine_readings",
                                      "dense_readings", "background_texture_readings", "along_texture", "reach_widened",
                                      "outline_every_model", "outline_models_left_out", "codec_copies_left_out",
-                                     "codec_floor_s", "mask_past_outline_px", "rim_filled_frames",
+                                     "texture_light_blocks", "codec_floor_s", "mask_past_outline_px", "rim_filled_frames",
                                      "codec_floor_x_px", "codec_floor_y_px",
                                      *(f"field_window_{w:g}px" for w in (WINDOW_PX, *WIDER_WINDOWS_PX)),
                                      *(f"why_{reason}" for reason in REASONS)), 0)
@@ -1435,10 +1435,13 @@ class DeepFlow(DenseMethod):
         return reported
 
     def _texture_fit(self, region: _Region, current: np.ndarray, start: np.ndarray) -> RegionMotion:
-        """:meth:`_Region.texture_fit`, counting the fits that left a codec's copies out."""
+        """:meth:`_Region.texture_fit`, counting the fits that left a codec's copies out and those
+        read block by block under a light that changed across the region."""
         found, left_out = region.texture_fit(current, start)
         if left_out:
             self.counts["codec_copies_left_out"] += 1
+        # The light changed across the region: fitted with each block's own gain (see regionfit).
+        self.counts["texture_light_blocks"] += found.light_varies
         return found
 
     def _copied_profiles(self, region: _Region, reference: np.ndarray,
