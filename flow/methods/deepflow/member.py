@@ -96,6 +96,16 @@ MAX_DISTANCE = 10
 # texture). A thin cable (3 px) leaves out the 0.7 and 1 px models. (Taking the sharp model out
 # everywhere costs the bench's bars: compressed 0.187 -> 0.277 px, edge-on-thin 0.054 -> 0.087.)
 IMPLAUSIBLE_MISFIT = 16.0
+# Where the sharp model draws the reference's outlines to their noise (its misfit at most 1), a
+# blur model that misfits them more than this many times the noise measures the frames but is
+# never the one kept (see MemberEdges.fit): the outline is sharp, and the blur models' wider
+# transition, unable to draw it, pulls it towards whole pixels, where their outlines may agree
+# best. A dark deck against a bright sky (155 grey levels of contrast, H.264 CRF 18), the mask
+# inside its one outline in view: the sharp model's misfit 0.15, the blur models' 2.5-9.3; they
+# read it 0.2-0.5 px short (0.23-0.30 px RMS, the sharp model 0.025) and were kept in 4 of 48
+# frames (0.123 px RMS, DIS 0.072). Their disagreement still enters the reading's uncertainty.
+# The bench's clips whose sharp model draws the reference so: the blur models 0.44-1.48.
+UNCHOSEN_BLUR_MISFIT = 2.0
 # Half length of a profile strip (pixels on each side of its centre).
 HALF = 9
 # Pixels either side of the guess where the coarse step looks for the outline.
@@ -116,6 +126,13 @@ ORIENT_RATIO = 4.0
 # has 247 of 250 (its 3 others, where the grow overran the beam's edge by a few pixels, are its
 # edge all the same: leaving them out read the scenario 0.058 -> 0.071 mm RMSE).
 SCENE_STOPPED = 0.5
+# Where most are, those the grow's limit stopped are kept within this many lines of one the scene
+# stopped on the same side of the support (the grow overran the outline here and there); farther,
+# left out (the grow stopped at its limit along a whole side, on no outline: a dark deck wider
+# than the grow's reach, its far outline 6 px beyond the limit, gave 67-80 profiles straddling the
+# deck's texture and that outline, and the sharp model read it 0.15-0.18 px RMS, lossless and on
+# H.264, where the one outline in reach read 0.017-0.039).
+OVERRUN_LINES = 4
 # Floor of the robust scale of the standardised profile residuals.
 MIN_SCALE = 0.5
 # A reference profile whose model misfit exceeds this many times the median is not used.
@@ -1050,6 +1067,7 @@ class MemberEdges:
         self.lossless = False  # the frames are (see from_reference)
         self.n_profiles = 0
         self.models: tuple[int, ...] = tuple(range(len(BLURS) + 1))  # see _plausible_models
+        self.unchosen: frozenset[int] = frozenset()  # see _unchosen_models
 
     @classmethod
     def from_reference(cls, reference: np.ndarray, mask: np.ndarray, *,
@@ -1112,6 +1130,24 @@ class MemberEdges:
             self.axes = self.axes[:, ::-1].copy()
             self.half = self.half[::-1].copy()
 
+    def _beside_stopped(self, stopped: np.ndarray) -> np.ndarray:
+        """Which profiles lie within OVERRUN_LINES lines of a ``stopped`` one on the same side of
+        the support, scanned the same way: where the grow overran a member's outline here and
+        there. Elsewhere the grow stopped at its limit along a whole side of the support (a
+        member wider than the grow's reach, its far outline out of it), on no outline."""
+        near = np.zeros(stopped.shape, bool)
+        for vertical in (False, True):
+            for side in (-1, 1):
+                group = (self.vertical == vertical) & (self.side == side)
+                lines = np.sort(self.line[group & stopped])
+                if lines.size == 0:
+                    continue
+                at = np.clip(np.searchsorted(lines, self.line[group]), 1, lines.size) - 1
+                gap = np.minimum(np.abs(self.line[group] - lines[at]),
+                                 np.abs(self.line[group] - lines[np.minimum(at + 1, lines.size - 1)]))
+                near[group] = gap <= OVERRUN_LINES
+        return near
+
     def _profiles(self, ref: np.ndarray, reach: np.ndarray, further: np.ndarray) -> None:
         """The edge profiles across the support's boundary: those where the scene stopped the
         support (the pixel beyond it is within the grow's ``reach``: the member's outline, or
@@ -1171,6 +1207,8 @@ class MemberEdges:
         keep = np.isfinite(sharp.edge) & (np.abs(sharp.contrast) >= self.params.min_contrast)
         if keep.any() and np.mean(stopped[keep]) < SCENE_STOPPED:
             keep &= stopped  # (a member's outline keeps the few the grow overran: see SCENE_STOPPED)
+        else:
+            keep &= stopped | self._beside_stopped(stopped & keep)
         boundary = np.where(keep, sharp.edge, 0.0)
         self.px = np.where(self.vertical, self.line, boundary).astype(np.float64)
         self.py = np.where(self.vertical, boundary, self.line).astype(np.float64)
@@ -1194,6 +1232,7 @@ class MemberEdges:
         self.ref = self.ref_by_blur[0]
         self.n_profiles = int(keep.sum())
         self.models = self._plausible_models()
+        self.unchosen = self._unchosen_models()
 
     def _plausible_models(self) -> tuple[int, ...]:
         """The outline models the frames are measured under (indices of :data:`BLURS`, then the
@@ -1209,10 +1248,24 @@ class MemberEdges:
         `ibeam`: 0.31 px RMS where DIS read 0.16; 0.030 without it); it misfit that reference 48
         times the noise, the 1 px model 0.7 times. The whole-profile match draws no model and
         always stays."""
-        typical = [float(np.nanmedian(o.misfit)) if np.isfinite(o.misfit).any() else np.inf
-                   for o in self.ref_by_blur]
+        typical = self._reference_misfits()
         bound = IMPLAUSIBLE_MISFIT * max(min(typical), 1.0)
         return tuple(i for i, misfit in enumerate(typical) if misfit <= bound) + (len(BLURS),)
+
+    def _reference_misfits(self) -> list[float]:
+        """Each blur model's median misfit of the reference's outlines (about 1 where it explains
+        a profile to its noise; inf where it located none)."""
+        return [float(np.nanmedian(o.misfit)) if np.isfinite(o.misfit).any() else np.inf for o in self.ref_by_blur]
+
+    def _unchosen_models(self) -> frozenset[int]:
+        """The blur models (indices of :data:`BLURS`) that measure the frames but are never kept:
+        where the sharp model draws the reference's outlines to their noise, those misfitting
+        them more than UNCHOSEN_BLUR_MISFIT times the noise (see there)."""
+        typical = self._reference_misfits()
+        sharp = BLURS.index(0.0)
+        if sharp not in self.models or not typical[sharp] <= 1.0:
+            return frozenset()
+        return frozenset(i for i in self.models if i < len(BLURS) and i != sharp and typical[i] > UNCHOSEN_BLUR_MISFIT)
 
     # -- outline location --------------------------------------------------------------------------
 
@@ -1428,7 +1481,7 @@ class MemberEdges:
         results = [(index, fitted[index]) for index in sorted(fitted) if fitted[index] is not None]
         if not results:
             return empty
-        index, chosen = min(results, key=lambda r: r[1].spread)
+        index, chosen = min([r for r in results if r[0] not in self.unchosen] or results, key=lambda r: r[1].spread)
         best = chosen.spread
         if systematic is None:
             # What the plausible outline models (their outlines agree within PLAUSIBLE times the
