@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -117,12 +118,34 @@ def test_a_shadows_edge_across_the_region_does_not_move_the_reading(edge_col: fl
     assert readings[False] > 3 * readings[True] and readings[False] > 0.02
 
 
+def test_where_the_fit_block_by_block_fails_the_fit_with_one_gain_is_kept(monkeypatch):
+    # The shadow found, but the fit block by block does not converge (a region too small for
+    # its blocks, a wild start): the fit with one gain, which did, is kept, and says so.
+    reference = textured(120, 160, seed=7)
+    shadow = 1.0 - 0.35 / (1.0 + np.exp(-(np.arange(160) - 60.0) / 4.0))
+    current = shifted(reference, 0.3, -0.2) * shadow[None, :]
+    rows, cols = _region(reference.shape, (20, 100, 30, 130))
+    fit = RegionFit(to_u8(reference), rows, cols)
+    solve = RegionFit._solve
+
+    def failing_by_blocks(self, *args, local=False, **kwargs):
+        found = solve(self, *args, local=local, **kwargs)
+        return dataclasses.replace(found, converged=False) if local else found
+
+    monkeypatch.setattr(RegionFit, "_solve", failing_by_blocks)
+    found = fit.fit(to_u8(current), np.zeros(6))
+    assert found.converged and not found.light_varies
+    one_gain = RegionFit(to_u8(reference), rows, cols, local_light=False).fit(to_u8(current), np.zeros(6))
+    assert np.array_equal(found.params, one_gain.params)
+
+
 @pytest.mark.parametrize("blob_px", [2.0, 8.0])
 def test_where_the_light_did_not_change_across_the_region_one_gain_reads_it(blob_px: float) -> None:
     # A faint, coarse texture (blobs of 8-20 px, 6 grey levels) tells much of its motion by the
     # grey of areas larger than a block: a gain and offset for every block would throw that away
     # (0.07 -> 0.21 px on such textures under noise). Without a change of light across the region,
-    # a light that changed over the whole frame included, it is read with one gain, as before.
+    # a light that changed over the whole frame included, it is read with one gain, as before; so
+    # is a fine one (blobs of 2-5 px).
     rng = np.random.default_rng(3)
     image = sum(s * ndimage.gaussian_filter(rng.standard_normal((160, 200)), s) for s in (blob_px, 2.5 * blob_px))
     reference = 128 + 6 * (image - image.mean()) / image.std()

@@ -335,11 +335,17 @@ class RegionFit:
         than a change of contrast does: a smoothly shaded round member), the translation alone
         is fitted, the deformation kept at the start's. Where the light changed across the
         region (:meth:`light_changed`), the frame is fitted again with each block's own gain and
-        offset (``light_varies`` in the result)."""
+        offset (``light_varies`` in the result), unless that fit fails where the first did not."""
         found = self._affine_or_translation(current, start, keep, local=False)
         if found.light_varies:
-            found = self._affine_or_translation(current, start, keep, local=True)
+            found = self._by_blocks(found, self._affine_or_translation(current, start, keep, local=True))
         return self._unbiased(found)
+
+    @staticmethod
+    def _by_blocks(whole: RegionMotion, blocks: RegionMotion) -> RegionMotion:
+        """The fit block by block where it converged or the fit with one gain did not either;
+        else the latter, which then says it was read with one gain (``light_varies`` False)."""
+        return blocks if blocks.converged or not whole.converged else dataclasses.replace(whole, light_varies=False)
 
     def _affine_or_translation(self, current: np.ndarray, start: np.ndarray, keep: np.ndarray | None, *,
                                local: bool) -> RegionMotion:
@@ -356,7 +362,7 @@ class RegionFit:
             raise ValueError(f"max_iterations={max_iterations}: a fit needs at least one iteration")
         found = self._solve(current, start, _TRANSLATION, max_iterations)
         if found.light_varies:
-            found = self._solve(current, start, _TRANSLATION, max_iterations, local=True)
+            found = self._by_blocks(found, self._solve(current, start, _TRANSLATION, max_iterations, local=True))
         return self._unbiased(found)
 
     def _unbiased(self, found: RegionMotion) -> RegionMotion:
@@ -510,10 +516,11 @@ class RegionFit:
             f = self._f_local if everywhere else _centred(self._f_local[inside], blocks)
             g = _centred(g, blocks)
             g_norm = np.sqrt(_block_sums(g ** 2, blocks))
-            seen = g_norm > 0
+            f_norm = np.sqrt(_block_sums(f ** 2, blocks))
+            # (A block the frame shows flat, a clipped one: its spline's values differ by rounding.)
+            seen = g_norm > 1e-6 * f_norm
             if not seen.any():
                 return None
-            f_norm = np.sqrt(_block_sums(f ** 2, blocks))
             return np.where(seen, f - f_norm / np.where(seen, g_norm, 1.0) * g, 0.0)
         g = g - g.mean()
         g_norm = float(np.sqrt(np.sum(g ** 2)))
