@@ -153,8 +153,10 @@ def track(options: TrackOptions) -> Outcome:
     output_names(options.outputs, read_paths)
     setup = _set_up(options, notes, name, sparse)
     params, method = _for_source(name, params, method, setup.source, notes)
-    check_reference(setup.source, options.reference_frame, options.reference_average, setup.labels > 0,
-                    setup.undistort)
+    saturated = check_reference(setup.source, options.reference_frame, options.reference_average,
+                                setup.labels > 0, setup.undistort)
+    if saturated is not None:
+        _note(notes, saturated)
     field = _field_stream(options, setup, sparse, name)
     try:
         return _track_and_write(options, setup, method, name, params, sparse, jobs, frames, notes, read_paths,

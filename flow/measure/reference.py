@@ -1,5 +1,5 @@
 """Whether the reference frame can be measured against: it shows texture or an outline
-around the POIs, and is not saturated there.
+around the POIs, and is not washed out there.
 
 Every dense method reads each frame's motion against the one reference frame. A black or
 uniform reference (a lens cap, a fade-in) or a washed-out one (a flash) gives every method
@@ -11,6 +11,12 @@ frame from it that would do.
 What counts is the POI mask and its near surroundings, not the mask alone: a plain painted
 member has little texture inside its outline, but its edges against the background carry
 its motion (``tests/unit/_lowtex_clip.py``), and those lie just outside the mask.
+
+Saturation is the same: a frame washed out by a flash or an exposure that overshot has its
+surroundings at the top grey or just below it, and is refused. A member painted white in the
+sun, or a bright sky, clipped at the top grey in front of a clearly darker background in this
+frame and the ones after it, is the scene itself: its outline carries the motion. It is
+measured, with a note.
 """
 
 from __future__ import annotations
@@ -38,6 +44,15 @@ SMOOTH_SIGMA_PX = 1.0
 # grey (clipped pixels share one value: a textured bright scene has few pixels there).
 SATURATED_SHARE = 0.5
 SATURATED_MIN_GREY = 200.0
+# Saturation that is the scene's own (see the module's note): at least DARKER_SHARE of the
+# surroundings below DARKER_GREY of the top grey (an outline against a darker background: a
+# white bar, 262 grey levels clipped to 255, the mask inside it, in front of a wall of 110 +- 25:
+# 34 % below; a flash that lifts a texture by 135 grey levels: none), and each of the
+# PERSIST_FRAMES frames after the reference (or those the video has) at least half as saturated
+# (the frame after a flash: none at the top grey).
+DARKER_SHARE = 0.05
+DARKER_GREY = 0.75
+PERSIST_FRAMES = 5
 # How far ahead a usable frame is looked for, to name it in the refusal.
 SEARCH_FRAMES = 1000
 
@@ -74,31 +89,66 @@ def problem(grey: np.ndarray, near: np.ndarray) -> str | None:
     if high - low < needed:
         return (f"has no texture around the mask (uniform grey {float(np.median(values)):.0f}: its grey levels "
                 f"spread over {high - low:.2g}, {needed:.2g} needed)")
-    top = float(values.max())
-    at_top = float(np.mean(values >= top - 0.5))
+    top, at_top, _ = saturation(values)
     if top >= SATURATED_MIN_GREY and at_top >= SATURATED_SHARE:
-        return f"is saturated around the mask ({100 * at_top:.0f} % of its pixels at the top grey {top:.0f})"
+        return f"{SATURATED_WORDS} ({100 * at_top:.0f} % of its pixels at the top grey {top:.0f})"
     return None
 
 
+SATURATED_WORDS = "is saturated around the mask"
+
+
+def saturation(values: np.ndarray) -> tuple[float, float, float]:
+    """``(top, at_top, darker)`` of grey levels ``values``: their brightest grey, the share of
+    them at it and the share below :data:`DARKER_GREY` of it."""
+    top = float(values.max())
+    return top, float(np.mean(values >= top - 0.5)), float(np.mean(values < DARKER_GREY * top))
+
+
+def _lit_scene(greys: list[np.ndarray], average: int, near: np.ndarray) -> str | None:
+    """A note where the saturation of the reference frames ``greys[:average]`` is the scene's
+    own (see the module's note; the rest of ``greys`` are the frames after them), else None."""
+    shares = [saturation(grey[near].astype(np.float32)) for grey in greys]
+    reference = shares[:average]
+    if not all(darker >= DARKER_SHARE for _, _, darker in reference):
+        return None
+    at_top = min(share for _, share, _ in reference)
+    if not all(top >= SATURATED_MIN_GREY and share >= 0.5 * at_top for top, share, _ in shares[len(reference):]):
+        return None
+    top, _, darker = reference[0]
+    return (f"the reference shows {100 * at_top:.0f} % of the pixels around the mask at the top grey {top:.0f}, "
+            f"as do the frames after it (overexposed): only their outline against the darker "
+            f"{100 * darker:.0f} % carries the motion there; lower the exposure if you record again")
+
+
 def check(source: FrameSource, reference_frame: int, average: int, mask: np.ndarray,
-          undistort: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+          undistort: Callable[[np.ndarray], np.ndarray] | None = None) -> str | None:
     """Refuse a reference (frame ``reference_frame``, or each of the ``average`` frames from
     it) that :func:`problem` finds wanting, naming the first frame from which ``average``
-    frames in a row would do. Frames beyond the video are left to the driver to refuse."""
+    frames in a row would do. Frames beyond the video are left to the driver to refuse.
+    Returns a note where the reference is saturated as the scene is (see the module's note)."""
     near = surroundings(mask)
     if reference_frame < 0 or average < 1 or not near.any():
-        return  # the driver and the mask checks say what is wrong with these
+        return None  # the driver and the mask checks say what is wrong with these
+
+    def greys(start: int, stop: int):
+        for index, _, grey in source.frames(start, stop):
+            yield index, undistort(grey) if undistort is not None else grey
 
     def frames(start: int, stop: int):
-        for index, _, grey in source.frames(start, stop):
-            yield index, problem(undistort(grey) if undistort is not None else grey, near)
+        for index, grey in greys(start, stop):
+            yield index, problem(grey, near)
 
     bad = next(((index, found) for index, found in frames(reference_frame, reference_frame + average) if found),
                 None)
     if bad is None:
-        return
+        return None
     index, found = bad
+    if found.startswith(SATURATED_WORDS):
+        stop = reference_frame + average + PERSIST_FRAMES
+        note = _lit_scene([grey for _, grey in greys(reference_frame, stop)], average, near)
+        if note is not None:
+            return note
     what = f"the reference frame {index}" if average == 1 else \
         f"frame {index} of the reference average ({reference_frame}..{reference_frame + average - 1})"
     run, usable = 0, None
