@@ -106,6 +106,22 @@ IMPLAUSIBLE_MISFIT = 16.0
 # frames (0.123 px RMS, DIS 0.072). Their disagreement still enters the reading's uncertainty.
 # The bench's clips whose sharp model draws the reference so: the blur models 0.44-1.48.
 UNCHOSEN_BLUR_MISFIT = 2.0
+# Where the profiles lie on one outline (ONE_OUTLINE_SHARE of them on one side of the member, in
+# one scan direction; a few may lie on the side the grow's reach stopped at, see OVERRUN_LINES), they share
+# its sub-pixel phase, and a blur model's phase-dependent error is common to all of them: their
+# spread cannot judge the models. There the profiles matched whole (no model) are kept, unless
+# every blur model is unchosen (UNCHOSEN_BLUR_MISFIT: the outline is sharper than they draw, and
+# the sharp model's is exact). A deck against a sky 40 grey levels brighter, its lower outline
+# alone in reach, H.264 CRF 18, two draws: 0.096 and 0.080 px RMS -> 0.058 and 0.053 (DIS 0.075,
+# 0.079); a sky with a texture of 8 grey levels 0.098 -> 0.062 (DIS 0.075). At 155 grey levels of
+# contrast the blur models are unchosen and the spread still chooses (0.038 px, and 0.036-0.039
+# with a textured sky), where the whole-profile match read 0.051 (0.042-0.048). On lossy frames
+# only: on lossless ones (an area-sampled outline, as a camera file's) the sharp model draws the
+# outline exactly and the whole-profile match has an error of its own, common to every profile
+# (the same faint deck, lossless: the sharp model 0.002-0.026 px off, the whole-profile match
+# 0.064-0.095).
+ONE_OUTLINE_WHOLE = True
+ONE_OUTLINE_SHARE = 0.9
 # Half length of a profile strip (pixels on each side of its centre).
 HALF = 9
 # Pixels either side of the guess where the coarse step looks for the outline.
@@ -1068,6 +1084,7 @@ class MemberEdges:
         self.n_profiles = 0
         self.models: tuple[int, ...] = tuple(range(len(BLURS) + 1))  # see _plausible_models
         self.unchosen: frozenset[int] = frozenset()  # see _unchosen_models
+        self.one_outline = False  # the profiles on one side, one scan direction (see ONE_OUTLINE_WHOLE)
 
     @classmethod
     def from_reference(cls, reference: np.ndarray, mask: np.ndarray, *,
@@ -1233,6 +1250,8 @@ class MemberEdges:
         self.n_profiles = int(keep.sum())
         self.models = self._plausible_models()
         self.unchosen = self._unchosen_models()
+        groups = np.unique(self.side * 2 + self.vertical, return_counts=True)[1]
+        self.one_outline = bool(groups.size) and groups.max() >= ONE_OUTLINE_SHARE * self.n_profiles
 
     def _plausible_models(self) -> tuple[int, ...]:
         """The outline models the frames are measured under (indices of :data:`BLURS`, then the
@@ -1481,7 +1500,7 @@ class MemberEdges:
         results = [(index, fitted[index]) for index in sorted(fitted) if fitted[index] is not None]
         if not results:
             return empty
-        index, chosen = min([r for r in results if r[0] not in self.unchosen] or results, key=lambda r: r[1].spread)
+        index, chosen = self._chosen(results)
         best = chosen.spread
         if systematic is None:
             # What the plausible outline models (their outlines agree within PLAUSIBLE times the
@@ -1496,6 +1515,16 @@ class MemberEdges:
         return MemberFit(True, chosen.theta, self._covariance(chosen), chosen.used, self.n_profiles,
                          chosen.scale, np.array(systematic, np.float64), index, best,
                          len(fitted) == len(every))
+
+    def _chosen(self, results: list[tuple[int, _Solution]]) -> tuple[int, _Solution]:
+        """The outline model kept of ``results`` ((index, solution) pairs, see :meth:`fit`): the
+        one whose outlines agree best, of those not :attr:`unchosen`; on one outline of lossy
+        frames the profiles matched whole (see ONE_OUTLINE_WHOLE)."""
+        whole = [r for r in results if r[0] == len(BLURS)]
+        blurs = {i for i in self.models if i < len(BLURS) and BLURS[i] > 0.0}
+        if ONE_OUTLINE_WHOLE and self.one_outline and not self.lossless and whole and not blurs <= self.unchosen:
+            return whole[0]
+        return min([r for r in results if r[0] not in self.unchosen] or results, key=lambda r: r[1].spread)
 
     def _model_fit(self, index: int, cur: np.ndarray, start: np.ndarray, gain: float | None,
                    camera: np.ndarray | None, prior: np.ndarray, skip: np.ndarray | None = None) -> _Solution | None:
