@@ -21,7 +21,7 @@ measured, with a note.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import cv2
 import numpy as np
@@ -47,12 +47,17 @@ SATURATED_MIN_GREY = 200.0
 # Saturation that is the scene's own (see the module's note): at least DARKER_SHARE of the
 # surroundings below DARKER_GREY of the top grey (an outline against a darker background: a
 # white bar, 262 grey levels clipped to 255, the mask inside it, in front of a wall of 110 +- 25:
-# 34 % below; a flash that lifts a texture by 135 grey levels: none), and each of the
-# PERSIST_FRAMES frames after the reference (or those the video has) at least half as saturated
-# (the frame after a flash: none at the top grey).
+# 34 % below; a flash that lifts a texture by 135 grey levels: none), and the light steady over
+# the PERSIST_FRAMES frames after the reference (at least one of them): each at least half as
+# saturated (the frame after a flash: none at the top grey) and its pixels that were darker in
+# the reference, where they still are, as bright as there within STEADY_LIGHT (the median of
+# their ratio): an exposure settling after an overshoot (its gain 1 + 1.2 exp(-frame / 15),
+# 77 % of a faint bar's surroundings at 255 in the first frame) darkens them by 3.4 % in the
+# next frame and 23 % by the 30th, and its readings were 1.6 px off, every frame marked valid.
 DARKER_SHARE = 0.05
 DARKER_GREY = 0.75
-PERSIST_FRAMES = 5
+PERSIST_FRAMES = 30
+STEADY_LIGHT = 0.03
 # How far ahead a usable frame is looked for, to name it in the refusal.
 SEARCH_FRAMES = 1000
 
@@ -105,17 +110,28 @@ def saturation(values: np.ndarray) -> tuple[float, float, float]:
     return top, float(np.mean(values >= top - 0.5)), float(np.mean(values < DARKER_GREY * top))
 
 
-def _lit_scene(greys: list[np.ndarray], average: int, near: np.ndarray) -> str | None:
-    """A note where the saturation of the reference frames ``greys[:average]`` is the scene's
-    own (see the module's note; the rest of ``greys`` are the frames after them), else None."""
-    shares = [saturation(grey[near].astype(np.float32)) for grey in greys]
-    reference = shares[:average]
-    if not all(darker >= DARKER_SHARE for _, _, darker in reference):
+def _lit_scene(reference: list[np.ndarray], after: Iterable[np.ndarray], near: np.ndarray) -> str | None:
+    """A note where the saturation of the reference frames, whose pixels ``near`` are
+    ``reference``, is the scene's own (see the module's note), judged on the frames ``after``
+    them (grey images); else None."""
+    shares = [saturation(values) for values in reference]
+    if not all(darker >= DARKER_SHARE for _, _, darker in shares):
         return None
-    at_top = min(share for _, share, _ in reference)
-    if not all(top >= SATURATED_MIN_GREY and share >= 0.5 * at_top for top, share, _ in shares[len(reference):]):
-        return None
-    top, _, darker = reference[0]
+    top, at_top, darker = shares[0]
+    first = reference[0]
+    dark = first < DARKER_GREY * top
+    seen = 0
+    for grey in after:
+        now = grey[near].astype(np.float32)
+        now_top, now_at_top, _ = saturation(now)
+        still = dark & (now < DARKER_GREY * now_top)
+        if now_top < SATURATED_MIN_GREY or now_at_top < 0.5 * min(s[1] for s in shares) or not still.any():
+            return None
+        if abs(float(np.median(now[still] / np.maximum(first[still], 1.0))) - 1.0) > STEADY_LIGHT:
+            return None
+        seen += 1
+    if not seen:
+        return None  # (nothing shows that it lasts)
     return (f"the reference shows {100 * at_top:.0f} % of the pixels around the mask at the top grey {top:.0f}, "
             f"as do the frames after it (overexposed): only their outline against the darker "
             f"{100 * darker:.0f} % carries the motion there; lower the exposure if you record again")
@@ -139,14 +155,19 @@ def check(source: FrameSource, reference_frame: int, average: int, mask: np.ndar
         for index, grey in greys(start, stop):
             yield index, problem(grey, near)
 
-    bad = next(((index, found) for index, found in frames(reference_frame, reference_frame + average) if found),
-                None)
+    problems, saturated = [], []
+    for index, grey in greys(reference_frame, reference_frame + average):
+        problems.append((index, problem(grey, near)))
+        if problems[-1][1] is not None:
+            saturated.append(grey[near].astype(np.float32))
+    bad = next(((index, found) for index, found in problems if found), None)
     if bad is None:
         return None
     index, found = bad
-    if found.startswith(SATURATED_WORDS):
-        stop = reference_frame + average + PERSIST_FRAMES
-        note = _lit_scene([grey for _, grey in greys(reference_frame, stop)], average, near)
+    if all(said is None or said.startswith(SATURATED_WORDS) for _, said in problems):
+        start = reference_frame + average
+        after = (grey for _, grey in greys(start, start + PERSIST_FRAMES))
+        note = _lit_scene(saturated, after, near)
         if note is not None:
             return note
     what = f"the reference frame {index}" if average == 1 else \

@@ -145,21 +145,26 @@ def test_a_plain_member_with_an_outline_is_accepted(tmp_path) -> None:
     assert problem(clip.frames[0], clip.mask) is not None, "inside the mask alone there is nothing to match"
 
 
-def _white_bar(tmp_path: Path, flash_first: bool = False) -> tuple[Path, Path, np.ndarray]:
+def _white_bar(tmp_path: Path, flash_first: bool = False, gains: np.ndarray | None = None,
+               member_grey: float = 275.0) -> tuple[Path, Path, np.ndarray]:
     """A bar painted white in the sun (its grey 275, clipped at 255) moving in front of a darker
     wall, the mask inside it: a PNG folder, the mask and the truth (px). ``flash_first``: frame 0
-    washed out by a flash (the scene's grey levels doubled)."""
+    washed out by a flash (the scene's grey levels doubled). ``gains``: each frame's exposure
+    (clipped at 255 after it)."""
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "unit"))
     from _lowtex_clip import make_clip
 
-    clip = make_clip(frames=16, member_grey=275.0, amplitude=2.0, frequency_hz=3.0)
+    clip = make_clip(frames=16, member_grey=member_grey, amplitude=2.0, frequency_hz=3.0)
+    gains = np.ones(len(clip.frames)) if gains is None else gains
+    if flash_first:
+        gains[0] = 2.0
     folder = tmp_path / "frames"
     folder.mkdir()
     for i, frame in enumerate(clip.frames):
-        image = np.minimum(2.0 * frame.astype(np.float64), 255) if (flash_first and i == 0) else frame
-        cv2.imwrite(str(folder / f"f{i:02d}.png"), image.astype(np.uint8))
+        image = np.minimum(gains[i] * frame.astype(np.float64), 255)
+        cv2.imwrite(str(folder / f"f{i:02d}.png"), np.rint(image).astype(np.uint8))
     mask = tmp_path / "mask.png"
     cv2.imwrite(str(mask), clip.mask.astype(np.uint8) * 255)
     return folder, mask, clip.truth_px - clip.truth_px[0]
@@ -200,6 +205,32 @@ def test_a_flash_over_a_scene_with_dark_parts_is_still_refused(tmp_path, capsys,
     line = _refused(capsys, out, measured)
     assert "the reference frame 0 is saturated around the mask (" in line, line
     assert line.endswith(": pass --reference-frame 1 (the first usable frame after it)"), line
+
+
+OVEREXPOSED_REFUSED = {
+    # An exposure settling after an overshoot: the wall darkens by 4 % from frame 0 to frame 1.
+    "exposure settling": (dict(gains=1.0 + 0.3 * np.exp(-np.arange(16) / 5.0)), ()),
+    # A grey bar (200) washed out in frame 1 only, inside a reference average of 3 frames.
+    "flash inside the average": (dict(gains=np.where(np.arange(16) == 1, 2.0, 1.0), member_grey=200.0),
+                                 ("--reference-average", "3")),
+    # The reference the last frame: no frame after it shows that the saturation lasts.
+    "nothing after the reference": (dict(), ("--reference-frame", "15")),
+}
+
+
+@pytest.mark.parametrize("kind", list(OVEREXPOSED_REFUSED))
+def test_a_saturated_reference_whose_light_is_not_shown_steady_is_refused(tmp_path, capsys, monkeypatch, kind) -> None:
+    """An overexposed member is taken as the scene only where the frames after the reference show
+    the same light (a reviewer's finds: each of these was accepted, the settling exposure of a
+    faint bar read 1.6 px RMS with every frame marked valid)."""
+    drawn, extra = OVEREXPOSED_REFUSED[kind]
+    folder, mask, _ = _white_bar(tmp_path, **drawn)
+    out = tmp_path / "out.csv"
+    measured = _count_frames(monkeypatch)
+    assert main(["track", str(folder), "--fps", "60", "--mask", str(mask), "--no-progress", "--out", str(out),
+                 *extra]) == 2
+    line = _refused(capsys, out, measured)
+    assert "is saturated around the mask (" in line, line
 
 
 # Case 2 ---------------------------------------------------------------------------------------
