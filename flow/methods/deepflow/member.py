@@ -122,6 +122,14 @@ UNCHOSEN_BLUR_MISFIT = 2.0
 # 0.064-0.095).
 ONE_OUTLINE_WHOLE = True
 ONE_OUTLINE_SHARE = 0.9
+# ... and only in front of a uniform background: the whole-profile match is biased by a textured
+# one, which does not move (see _shift). Uniform: the reference's pixels 2 to SHIFT_HALF px beyond
+# the outline vary (their standard deviation, the median over the profiles) by at most this share
+# of the outline's contrast. The decks' skies above: 0-0.023 (a texture of 0-12 grey levels); a
+# wide painted bar in front of a wall of 110 +- 25 grey levels, the mask near its one outline in
+# reach: 0.10-0.24, where the whole-profile match read 0.14-0.81 px RMS and the spread's choice
+# 0.086-0.17 (DIS 0.10-0.14).
+UNIFORM_BACKGROUND = 0.05
 # Half length of a profile strip (pixels on each side of its centre).
 HALF = 9
 # Pixels either side of the guess where the coarse step looks for the outline.
@@ -1085,6 +1093,7 @@ class MemberEdges:
         self.models: tuple[int, ...] = tuple(range(len(BLURS) + 1))  # see _plausible_models
         self.unchosen: frozenset[int] = frozenset()  # see _unchosen_models
         self.one_outline = False  # the profiles on one side, one scan direction (see ONE_OUTLINE_WHOLE)
+        self.uniform_background = False  # behind the outline (see UNIFORM_BACKGROUND)
 
     @classmethod
     def from_reference(cls, reference: np.ndarray, mask: np.ndarray, *,
@@ -1252,6 +1261,17 @@ class MemberEdges:
         self.unchosen = self._unchosen_models()
         groups = np.unique(self.side * 2 + self.vertical, return_counts=True)[1]
         self.one_outline = bool(groups.size) and groups.max() >= ONE_OUTLINE_SHARE * self.n_profiles
+        self.uniform_background = self._background_uniform(ref)
+
+    def _background_uniform(self, ref: np.ndarray) -> bool:
+        """Whether what lies behind the reference's outlines is uniform (see UNIFORM_BACKGROUND)."""
+        edge = self.ref.edge
+        if not np.isfinite(edge).any():
+            return False
+        values, _ = self._strips(ref, np.floor(np.where(np.isfinite(edge), edge, 0.0) + 0.5).astype(np.intp))
+        behind = values[np.isfinite(edge), HALF + 2:HALF + SHIFT_HALF + 1]
+        spread = float(np.nanmedian(np.nanstd(behind, axis=1)))
+        return spread <= UNIFORM_BACKGROUND * float(np.nanmedian(np.abs(self.ref.contrast)))
 
     def _plausible_models(self) -> tuple[int, ...]:
         """The outline models the frames are measured under (indices of :data:`BLURS`, then the
@@ -1519,10 +1539,11 @@ class MemberEdges:
     def _chosen(self, results: list[tuple[int, _Solution]]) -> tuple[int, _Solution]:
         """The outline model kept of ``results`` ((index, solution) pairs, see :meth:`fit`): the
         one whose outlines agree best, of those not :attr:`unchosen`; on one outline of lossy
-        frames the profiles matched whole (see ONE_OUTLINE_WHOLE)."""
+        frames, in front of a uniform background, the profiles matched whole (see ONE_OUTLINE_WHOLE)."""
         whole = [r for r in results if r[0] == len(BLURS)]
         blurs = {i for i in self.models if i < len(BLURS) and BLURS[i] > 0.0}
-        if ONE_OUTLINE_WHOLE and self.one_outline and not self.lossless and whole and not blurs <= self.unchosen:
+        if (ONE_OUTLINE_WHOLE and self.one_outline and self.uniform_background and not self.lossless and whole
+                and not blurs <= self.unchosen):
             return whole[0]
         return min([r for r in results if r[0] not in self.unchosen] or results, key=lambda r: r[1].spread)
 
