@@ -682,6 +682,12 @@ def test_on_one_outline_whose_blur_models_may_be_kept_the_profiles_matched_whole
     prior = np.zeros((textured.n_profiles, 2))
     prior[:, 1] = 0.9 * motion[1]
     assert textured.fit(frames[1], prior).model == 0
+    # An outline out of focus (blurred 1.5 px) reaches past 2 px beyond itself: its background is
+    # judged beyond its blur's reach, and is uniform (a reviewer's find: judged from 2 px, it was not).
+    frames, mask = _deck(1, motion, deck=100.0, sky=140.0)
+    blurred = np.rint(ndimage.gaussian_filter(frames[0].astype(np.float64), 1.5)).astype(np.uint8)
+    soft = MemberEdges.from_reference(blurred, mask)
+    assert soft.one_outline and soft.uniform_background
     # Both of a painted bar's outlines in reach: the spread chooses.
     clip = make_clip(seed=3, frames=2)
     assert not MemberEdges.from_reference(clip.frames[0], clip.mask).one_outline

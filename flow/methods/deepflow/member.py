@@ -124,7 +124,7 @@ ONE_OUTLINE_WHOLE = True
 ONE_OUTLINE_SHARE = 0.9
 # ... and only in front of a uniform background: the whole-profile match is biased by a textured
 # one, which does not move (see _shift). Uniform: the reference's pixels 2 to SHIFT_HALF px beyond
-# the outline vary (their standard deviation, the median over the profiles) by at most this share
+# the outline (beyond its blur's reach: see _background_uniform) vary (their standard deviation, the median over the profiles) by at most this share
 # of the outline's contrast. The decks' skies above: 0-0.023 (a texture of 0-12 grey levels); a
 # wide painted bar in front of a wall of 110 +- 25 grey levels, the mask near its one outline in
 # reach: 0.10-0.24, where the whole-profile match read 0.14-0.81 px RMS and the spread's choice
@@ -1264,12 +1264,16 @@ class MemberEdges:
         self.uniform_background = self._background_uniform(ref)
 
     def _background_uniform(self, ref: np.ndarray) -> bool:
-        """Whether what lies behind the reference's outlines is uniform (see UNIFORM_BACKGROUND)."""
+        """Whether what lies behind the reference's outlines is uniform (see UNIFORM_BACKGROUND):
+        beyond the reach of their blur (three times that of the blur model that draws them best)."""
         edge = self.ref.edge
         if not np.isfinite(edge).any():
             return False
         values, _ = self._strips(ref, np.floor(np.where(np.isfinite(edge), edge, 0.0) + 0.5).astype(np.intp))
-        behind = values[np.isfinite(edge), HALF + 2:HALF + SHIFT_HALF + 1]
+        misfits = self._reference_misfits()
+        blur = BLURS[int(np.argmin([misfits[i] if i in self.models else np.inf for i in range(len(BLURS))]))]
+        start = 2 + math.ceil(3.0 * blur)
+        behind = values[np.isfinite(edge), HALF + start:HALF + min(max(SHIFT_HALF, start + 3), HALF) + 1]
         spread = float(np.nanmedian(np.nanstd(behind, axis=1)))
         return spread <= UNIFORM_BACKGROUND * float(np.nanmedian(np.abs(self.ref.contrast)))
 

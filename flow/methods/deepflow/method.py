@@ -214,10 +214,10 @@ MATCH_SLACK = 0.5
 # ... and at most MATCH_RATIO times it plus MATCH_RATIO_SLACK grey levels: where the POIs' pixels
 # are smooth (a shaded round column, its shading the member's own texture) the two mismatches are
 # a fraction of a grey level and MATCH_SLACK alone let an outline read 0.4-0.6 px off through
-# (its mismatch 1.7-2.3 times the dense flow's; 0.27 and 0.19 px RMS against the dense flow's
-# 0.068 and 0.055). On the bench's clips the outlines' mismatch is at most 1.15 times the dense
-# flow's where the outline is read (the painted bars, the cylinder, g8, g9); 1.4-3.3 on the
-# textured panels, which are read by their texture.
+# (its mismatch 1.7-2.3 times the dense flow's; 0.266 and 0.193 px RMS on two draws, 0.083 and
+# 0.176 now, against the dense flow's 0.068 and 0.055). On the bench's clips the outlines'
+# mismatch is at most 1.15 times the dense flow's where the outline is read (the painted bars,
+# the cylinder, g8, g9); 1.4-3.3 on the textured panels, which are read by their texture.
 MATCH_RATIO = 1.3
 MATCH_RATIO_SLACK = 0.05
 # On a lossy stream the affine texture fits (the region's, the background's, and the codec floor's
@@ -401,15 +401,11 @@ DEFORM_CODEC_FLOOR_PX = 0.25
 # and 0.51.
 DEFORM_MATCH_RATIO = 0.9
 
-# An outline whose own standard uncertainty exceeds this (px) on both axes, or across the member
-# (the motion its outlines measure), cannot resolve a sub-pixel motion by its own account (the
-# tool's limit for a clip's typical uncertainty is 0.35 px): it is not taken, in a full
-# measurement or a tracked frame. A shaded round column (its limb darkens into the wall: no step
-# to fit) read 0.3-1.8 px this way and 0.19 px RMS, 6 % long, where the dense flow read 0.06; the
-# bench's painted bars stay below 0.4. Across the member alone (since 2026-12-07): such columns of
-# other draws read 0.27 and 0.19 px RMS where their outlines' sigma across was 0.59-0.78 px in
-# the frames read 0.4-1.0 px off (along them, from the dense flow, it was smaller); the paper's
-# dense flow read them 0.068 and 0.055, DIS 0.078 and 0.100.
+# An outline whose own standard uncertainty exceeds this (px) on both axes cannot resolve a
+# sub-pixel motion by its own account (the tool's limit for a clip's typical uncertainty is
+# 0.35 px): it is not taken, in a full measurement or a tracked frame. A shaded round column
+# (its limb darkens into the wall: no step to fit) read 0.3-1.8 px this way and 0.19 px RMS,
+# 6 % long, where the dense flow read 0.06; the bench's painted bars stay below 0.4.
 OUTLINE_MAX_SIGMA_PX = 0.5
 
 # Why a full measurement took its model: the sidecar's timings count each (``why_<reason>``,
@@ -433,8 +429,7 @@ REASONS = {
                                  "background never seen still or moving with the member while it moved",
     "outline_background_moves": "an outline refused: the background beyond it moves part of the way "
                                 "with the member (neither still nor with it)",
-    "outline_imprecise": "an outline refused: its own uncertainty exceeds OUTLINE_MAX_SIGMA_PX on both axes "
-                         "or across the member",
+    "outline_imprecise": "an outline refused: its own uncertainty exceeds OUTLINE_MAX_SIGMA_PX on both axes",
     "outline_texture_sharper": "an outline refused: a strong texture's fit is at least as precise as it "
                                "on both axes (its background seen still)",
     "outline_codec_copied": "an outline refused: the codec copied most of its pixels from the reference "
@@ -486,14 +481,6 @@ def _matches(edges: float, dense: float) -> bool:
     """Whether an outline's motion matches the POIs' pixels (their mean photometric mismatch
     ``edges``) about as well as the dense flow's (``dense``; see MATCH_TOLERANCE, MATCH_RATIO)."""
     return edges <= MATCH_TOLERANCE * dense + MATCH_SLACK and edges <= MATCH_RATIO * dense + MATCH_RATIO_SLACK
-
-
-def _imprecise(member: MemberEdges, sigma: tuple[float, float]) -> bool:
-    """Whether an outline reading of ``member`` whose own sigma is ``sigma`` (px, x and y) is
-    too imprecise to be taken (see OUTLINE_MAX_SIGMA_PX)."""
-    across = member.axes[:, 1]  # (the member's axes: along it, then across it)
-    return (min(sigma) > OUTLINE_MAX_SIGMA_PX
-            or float(np.hypot(across[0] * sigma[0], across[1] * sigma[1])) > OUTLINE_MAX_SIGMA_PX)
 
 
 def _first_models(key: int) -> tuple[int, ...]:
@@ -1541,7 +1528,7 @@ class DeepFlow(DenseMethod):
                 region.along_tried, region.along_texture = state is not None, state == "taken"
                 # The edges must not make the POIs' own match worse than the dense flow's.
                 sigma = region.outline_sigma(region.member.mean_sigma(fit), state)
-                if _imprecise(region.member, sigma):
+                if min(sigma) > OUTLINE_MAX_SIGMA_PX:
                     self._count(None, "outline_imprecise")
                 elif _matches(edges, _mismatch(reference, current, region.cols, region.rows, dense_u, dense_v)):
                     outline = (u, v, sigma)
@@ -1670,7 +1657,7 @@ class DeepFlow(DenseMethod):
         sigma = region.outline_sigma(member.mean_sigma(fit), state,
                                      at_least=0.0 if state == "taken" else region.key_ambiguity)
         if not (_in_band(edges, region.key_mismatch) and step <= MAX_WARM_STEP_PX
-                and not _imprecise(member, sigma)):
+                and min(sigma) <= OUTLINE_MAX_SIGMA_PX):
             return None
         # A key too still to show its background standing still: measured in full (and checked)
         # once the member has moved far enough to tell, unless the frame's own pixels beyond the
