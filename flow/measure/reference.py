@@ -50,9 +50,13 @@ SATURATED_MIN_GREY = 200.0
 # 34 % below; a flash that lifts a texture by 135 grey levels: none), and the light steady over
 # the PERSIST_FRAMES frames after the reference (at least one of them): at least half of them
 # saturated at least half as much (the frames after a flash: none at the top grey), and its
-# pixels that were darker in the reference, where they still are, with no trend in brightness
-# beyond STEADY_LIGHT over those frames (a line fitted to the median of their ratios to the
-# reference's; with fewer than 3 frames, each within it). An exposure settling after an overshoot
+# pixels that were darker in the reference, where they still are, as bright as there within
+# STEADY_LEVEL (the median over those frames of each frame's median ratio to the reference's) and
+# with no trend in brightness beyond STEADY_LIGHT over those frames (a line fitted to those
+# ratios; with fewer than 3 frames, each within it). A flash in the reference alone, the light
+# constant after it, has no trend: its level tells (x1.2: accepted without the level, it read
+# 0.104 px where the steady clip reads 0.030; x1.5 0.338); a reference at the peak of a +-5 %
+# flicker is within it (0.041 px). An exposure settling after an overshoot
 # (its gain 1 + 1.2 exp(-frame / 15), 77 % of a faint bar's surroundings at 255 in the first
 # frame, read 1.6 px off with every frame marked valid when it was accepted) darkens them by 3.5 %
 # in the next frame and 47 % by the 30th; a mains light's flicker (+-5 %, filmed at 240 fps) has
@@ -61,6 +65,7 @@ DARKER_SHARE = 0.05
 DARKER_GREY = 0.75
 PERSIST_FRAMES = 30
 STEADY_LIGHT = 0.05
+STEADY_LEVEL = 0.08
 # How far ahead a usable frame is looked for, to name it in the refusal.
 SEARCH_FRAMES = 1000
 
@@ -136,7 +141,7 @@ def _lit_scene(reference: list[np.ndarray], after: Iterable[np.ndarray], near: n
         steady = all(abs(ratio - 1.0) <= STEADY_LIGHT for ratio in light)
     else:
         trend = np.polyfit(np.arange(len(light)), light, 1)[0]
-        steady = abs(trend) * (len(light) - 1) <= STEADY_LIGHT
+        steady = abs(trend) * (len(light) - 1) <= STEADY_LIGHT and abs(float(np.median(light)) - 1.0) <= STEADY_LEVEL
     if not steady:
         return None
     return (f"the reference shows {100 * at_top:.0f} % of the pixels around the mask at the top grey {top:.0f}, "

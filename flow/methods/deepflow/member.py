@@ -123,8 +123,9 @@ UNCHOSEN_BLUR_MISFIT = 2.0
 ONE_OUTLINE_WHOLE = True
 ONE_OUTLINE_SHARE = 0.9
 # ... and only in front of a uniform background: the whole-profile match is biased by a textured
-# one, which does not move (see _shift). Uniform: the reference's pixels 2 to SHIFT_HALF px beyond
-# the outline (beyond its blur's reach: see _background_uniform) vary (their standard deviation, the median over the profiles) by at most this share
+# one, which does not move (see _shift). Uniform: the reference's pixels beyond the outline
+# (from 2 px plus three times the blur model that draws it best, 3-4 px on, see
+# _background_uniform) vary (their standard deviation, the median over the profiles) by at most this share
 # of the outline's contrast. The decks' skies above: 0-0.023 (a texture of 0-12 grey levels); a
 # wide painted bar in front of a wall of 110 +- 25 grey levels, the mask near its one outline in
 # reach: 0.10-0.24, where the whole-profile match read 0.14-0.81 px RMS and the spread's choice
