@@ -313,18 +313,25 @@ def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) 
     assert abs(0.95 * ours[1] - 1.0) > 0.015
 
 
+def _default_and_dis(tmp_path: Path, kind: str, seed: int) -> tuple[tuple, tuple]:
+    """:func:`_run`'s scores of the default and of DIS on the scene ``kind`` drawn with ``seed``
+    (H.264 CRF 18), printed."""
+    clip = _scene(kind, seed)
+    video = encode(clip, tmp_path / "clip.mp4", crf=18)
+    ours = _run(tmp_path, clip, video, "default")
+    base = _run(tmp_path, clip, video, "dis", "--method", "dis")
+    print(f"{kind} {seed}: default RMSE {ours[0]:.4f} px slope {ours[1]:.4f} valid {ours[2]:.2f}; "
+          f"dis {base[0]:.4f} / {base[1]:.4f}")
+    return ours, base
+
+
 # A shaded round column (another draw of the kind above): its soft limbs gave key outlines whose
 # motion matched the column's shaded pixels 1.7-2.3 times worse than the dense flow's, within the
 # 0.5 grey levels of slack of a mismatch of 0.4-0.7, read 0.4-1.0 px off: 0.266 px RMS, every
 # frame flagged, before 2026-12-07. Now refused by the ratio of the mismatches
 # (method.MATCH_RATIO): 0.083 (DIS 0.078, the paper's dense flow 0.068).
 def test_a_shaded_round_columns_outline_is_refused_where_it_reads_the_column_worse(tmp_path) -> None:
-    clip = _scene("round", seed=102)
-    video = encode(clip, tmp_path / "clip.mp4", crf=18)
-    ours = _run(tmp_path, clip, video, "default")
-    base = _run(tmp_path, clip, video, "dis", "--method", "dis")
-    print(f"round 102: default RMSE {ours[0]:.4f} px slope {ours[1]:.4f} valid {ours[2]:.2f}; "
-          f"dis {base[0]:.4f} / {base[1]:.4f}")
+    ours, base = _default_and_dis(tmp_path, "round", 102)
     assert ours[0] <= 1.2 * base[0] and abs(ours[1] - 1.0) <= 0.015 and ours[2] >= 0.95
     assert ours[3]["dense_readings"] >= 0.3 * FRAMES
 
@@ -338,12 +345,7 @@ def test_a_shaded_round_columns_outline_is_refused_where_it_reads_the_column_wor
 # MemberEdges._beside_stopped); on six other draws 0.043-0.075 against DIS's 0.069-0.098.
 @pytest.mark.parametrize("seed", [55, 56])
 def test_a_dark_deck_against_a_bright_sky_is_read_by_its_one_outline_in_reach(tmp_path, seed) -> None:
-    clip = _scene("deck", seed)
-    video = encode(clip, tmp_path / "clip.mp4", crf=18)
-    ours = _run(tmp_path, clip, video, "default")
-    base = _run(tmp_path, clip, video, "dis", "--method", "dis")
-    print(f"deck {seed}: default RMSE {ours[0]:.4f} px slope {ours[1]:.4f} valid {ours[2]:.2f}; "
-          f"dis {base[0]:.4f} / {base[1]:.4f}")
+    ours, base = _default_and_dis(tmp_path, "deck", seed)
     assert ours[0] <= max(1.1 * base[0], 0.05) and abs(ours[1] - 1.0) <= 0.015 and ours[2] >= 0.95
     assert ours[3]["outline_readings"] >= 0.9 * FRAMES
 
@@ -355,12 +357,7 @@ def test_a_dark_deck_against_a_bright_sky_is_read_by_its_one_outline_in_reach(tm
 # is short as DIS's is (0.984 on 56, DIS 0.979).
 @pytest.mark.parametrize("seed", [55, 56])
 def test_a_faint_deck_on_its_one_outline_is_read_by_its_profiles_matched_whole(tmp_path, seed) -> None:
-    clip = _scene("deck-faint", seed)
-    video = encode(clip, tmp_path / "clip.mp4", crf=18)
-    ours = _run(tmp_path, clip, video, "default")
-    base = _run(tmp_path, clip, video, "dis", "--method", "dis")
-    print(f"deck-faint {seed}: default RMSE {ours[0]:.4f} px slope {ours[1]:.4f} valid {ours[2]:.2f}; "
-          f"dis {base[0]:.4f} / {base[1]:.4f}")
+    ours, base = _default_and_dis(tmp_path, "deck-faint", seed)
     assert ours[0] <= max(1.1 * base[0], 0.05) and ours[2] >= 0.95
     assert abs(ours[1] - 1.0) <= min(0.03, abs(base[1] - 1.0) + 0.01)
     assert ours[3]["outline_readings"] >= 0.9 * FRAMES

@@ -598,6 +598,19 @@ def _deck(seed: int, motion_px: np.ndarray, deck: float = 60.0, sky: float = 215
     return frames, mask
 
 
+def _made_to_agree_best(monkeypatch, model: int) -> None:
+    """Outline model ``model``'s outlines agree best of all (its spread 0) in every fit from now on."""
+    fit_model = MemberEdges._model_fit
+
+    def agreeing_best(self, index, *args, **kwargs):
+        found = fit_model(self, index, *args, **kwargs)
+        if found is not None and index == model:
+            found.spread = 0.0
+        return found
+
+    monkeypatch.setattr(MemberEdges, "_model_fit", agreeing_best)
+
+
 def test_a_sharp_outlines_blur_models_that_cannot_draw_it_are_never_the_ones_kept(monkeypatch):
     # The deck's outline is sharp and of high contrast: the sharp model draws it to its noise,
     # the blur models misfit it 2.5-5.5 times the noise. On H.264 they read it 0.2-0.5 px short
@@ -610,15 +623,7 @@ def test_a_sharp_outlines_blur_models_that_cannot_draw_it_are_never_the_ones_kep
     edges = MemberEdges.from_reference(frames[0], mask, lossless=True)
     assert edges.unchosen == frozenset(range(1, len(BLURS)))
     assert set(edges.unchosen) <= set(edges.models)
-    fit_model = MemberEdges._model_fit
-
-    def agreeing_best(self, index, *args, **kwargs):
-        found = fit_model(self, index, *args, **kwargs)
-        if found is not None and index == 1:
-            found.spread = 0.0
-        return found
-
-    monkeypatch.setattr(MemberEdges, "_model_fit", agreeing_best)
+    _made_to_agree_best(monkeypatch, 1)
     kept = {}
     for unchosen in (edges.unchosen, frozenset()):
         edges.unchosen = unchosen
@@ -650,15 +655,7 @@ def test_on_one_outline_whose_blur_models_may_be_kept_the_profiles_matched_whole
     edges = MemberEdges.from_reference(frames[0], mask)
     assert edges.one_outline and edges.uniform_background
     assert not set(range(1, len(BLURS))) & set(edges.models) <= edges.unchosen
-    fit_model = MemberEdges._model_fit
-
-    def agreeing_best(self, index, *args, **kwargs):
-        found = fit_model(self, index, *args, **kwargs)
-        if found is not None and index == 0:
-            found.spread = 0.0
-        return found
-
-    monkeypatch.setattr(MemberEdges, "_model_fit", agreeing_best)
+    _made_to_agree_best(monkeypatch, 0)
     kept = {}
     for rule, lossless in ((True, False), (False, False), (True, True)):
         monkeypatch.setattr(member_module, "ONE_OUTLINE_WHOLE", rule)
