@@ -128,11 +128,12 @@ def _lit_scene(reference: list[np.ndarray], after: Iterable[np.ndarray], near: n
     top, at_top, darker = shares[0]
     first = reference[0]
     dark = first < DARKER_GREY * top
+    least = min(share for _, share, _ in shares)
     saturated, light = [], []
     for grey in after:
         now = grey[near].astype(np.float32)
         now_top, now_at_top, _ = saturation(now)
-        saturated.append(now_top >= SATURATED_MIN_GREY and now_at_top >= 0.5 * min(s[1] for s in shares))
+        saturated.append(now_top >= SATURATED_MIN_GREY and now_at_top >= 0.5 * least)
         still = dark & (now < DARKER_GREY * now_top)
         light.append(float(np.median(now[still] / np.maximum(first[still], 1.0))) if still.any() else np.nan)
     if not saturated or np.mean(saturated) < 0.5 or not np.isfinite(light).all():

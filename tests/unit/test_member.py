@@ -611,6 +611,13 @@ def _made_to_agree_best(monkeypatch, model: int) -> None:
     monkeypatch.setattr(MemberEdges, "_model_fit", agreeing_best)
 
 
+def _fit_down(edges: MemberEdges, frame: np.ndarray, d: float):
+    """``edges``' fit of a deck's ``frame`` moved down by ``d`` px, from a dense-flow prior 10 % short."""
+    prior = np.zeros((edges.n_profiles, 2))
+    prior[:, 1] = 0.9 * d
+    return edges.fit(frame, prior)
+
+
 def test_a_sharp_outlines_blur_models_that_cannot_draw_it_are_never_the_ones_kept(monkeypatch):
     # The deck's outline is sharp and of high contrast: the sharp model draws it to its noise,
     # the blur models misfit it 2.5-5.5 times the noise. On H.264 they read it 0.2-0.5 px short
@@ -628,9 +635,7 @@ def test_a_sharp_outlines_blur_models_that_cannot_draw_it_are_never_the_ones_kep
     for unchosen in (edges.unchosen, frozenset()):
         edges.unchosen = unchosen
         for frame, d in zip(frames[1:], motion[1:], strict=True):
-            prior = np.zeros((edges.n_profiles, 2))
-            prior[:, 1] = 0.9 * d
-            fit = edges.fit(frame, prior)
+            fit = _fit_down(edges, frame, d)
             assert fit.ok
             kept.setdefault(unchosen, set()).add(fit.model)
             if unchosen:
@@ -661,9 +666,7 @@ def test_on_one_outline_whose_blur_models_may_be_kept_the_profiles_matched_whole
         monkeypatch.setattr(member_module, "ONE_OUTLINE_WHOLE", rule)
         edges.lossless = lossless
         for frame, d in zip(frames[1:], motion[1:], strict=True):
-            prior = np.zeros((edges.n_profiles, 2))
-            prior[:, 1] = 0.9 * d
-            fit = edges.fit(frame, prior)
+            fit = _fit_down(edges, frame, d)
             assert fit.ok
             kept.setdefault((rule, lossless), set()).add(fit.model)
             if lossless:
@@ -676,9 +679,7 @@ def test_on_one_outline_whose_blur_models_may_be_kept_the_profiles_matched_whole
     textured = MemberEdges.from_reference(frames[0], mask)
     assert textured.one_outline and not textured.uniform_background
     monkeypatch.setattr(member_module, "ONE_OUTLINE_WHOLE", True)
-    prior = np.zeros((textured.n_profiles, 2))
-    prior[:, 1] = 0.9 * motion[1]
-    assert textured.fit(frames[1], prior).model == 0
+    assert _fit_down(textured, frames[1], motion[1]).model == 0
     # An outline out of focus (blurred 1.5 px) reaches past 2 px beyond itself: its background is
     # judged beyond its blur's reach, and is uniform (a reviewer's find: judged from 2 px, it was not).
     frames, mask = _deck(1, motion, deck=100.0, sky=140.0)

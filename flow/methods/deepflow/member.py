@@ -1268,13 +1268,14 @@ class MemberEdges:
         """Whether what lies behind the reference's outlines is uniform (see UNIFORM_BACKGROUND):
         beyond the reach of their blur (three times that of the blur model that draws them best)."""
         edge = self.ref.edge
-        if not np.isfinite(edge).any():
+        located = np.isfinite(edge)
+        if not located.any():
             return False
-        values, _ = self._strips(ref, np.floor(np.where(np.isfinite(edge), edge, 0.0) + 0.5).astype(np.intp))
+        values, _ = self._strips(ref, np.floor(np.where(located, edge, 0.0) + 0.5).astype(np.intp))
         misfits = self._reference_misfits()
         blur = BLURS[int(np.argmin([misfits[i] if i in self.models else np.inf for i in range(len(BLURS))]))]
         start = 2 + math.ceil(3.0 * blur)
-        behind = values[np.isfinite(edge), HALF + start:HALF + min(max(SHIFT_HALF, start + 3), HALF) + 1]
+        behind = values[located, HALF + start:HALF + min(max(SHIFT_HALF, start + 3), HALF) + 1]
         spread = float(np.nanmedian(np.nanstd(behind, axis=1)))
         return spread <= UNIFORM_BACKGROUND * float(np.nanmedian(np.abs(self.ref.contrast)))
 
