@@ -328,6 +328,18 @@ TEXTURE_ENOUGH_PX = 0.012
 # bars 0.23-0.67; textured panel, whole view, bolted plate, slab, girder 1.5-7.7; the shaded
 # column 4.1 across and 0.2 along.
 MIN_TEXTURE_GRADIENT = 1.0
+# Where the codec froze the member's outline (more than COPY_OUTLINE_MAX of its profiles copied
+# from the reference, see _copied_profiles) the outline reads little or no motion; a texture of at
+# least this strength is then fitted (its copies left out) and taken as a strong one is. A faint
+# panel (5 grey levels) moving +-0.3 px at CRF 18, its outline 20 px beyond the mask, strength
+# 0.98-1.02 on two draws: the outline read them 0.193 and 0.199 px RMS, slope 0.14 and 0.08 (no
+# motion at all for 10 frames running), where DIS read 0.103 / 0.77 and 0.094 / 0.83; now 0.117 /
+# 0.83 and 0.090 / 0.84; fainter (4 grey levels, strength about 0.8), three draws 0.148-0.184 ->
+# 0.075-0.118 (DIS 0.077-0.126). A faintly painted bar sliding along itself (4 grey levels,
+# strength 0.93-0.96), whose unchanged edges the codec copies, is read by its texture too: 0.187
+# -> 0.142 px along it (DIS 0.194), 0.001 -> 0.028 across it, where it stands still (DIS 0.023).
+# Above the bench's painted bars (0.23-0.67), whose outlines are read as before.
+FROZEN_TEXTURE_GRADIENT = 0.75
 # ... over the region's pixels more than OUTLINE_CLEAR_PX from the member's outline in the
 # reference: an outline's step is the outline model's to read, and its pixels change layer as
 # the member moves over what is behind it. A thin cable's mask (5 px across a 6 px cable) is all
@@ -576,6 +588,12 @@ class _Region:
         """Whether the region's texture is strong enough to be fitted and taken (see
         MIN_TEXTURE_GRADIENT; a weaker one is never fitted)."""
         return self.texture is not None and min(self.texture_strength) >= MIN_TEXTURE_GRADIENT
+
+    @property
+    def texture_beside_frozen_outline(self) -> bool:
+        """Whether the region's texture is strong enough to be fitted and taken, as a strong one
+        is, where the codec froze its outline (see FROZEN_TEXTURE_GRADIENT)."""
+        return self.texture is not None and min(self.texture_strength) >= FROZEN_TEXTURE_GRADIENT
 
     def restart(self) -> None:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
@@ -1484,6 +1502,17 @@ class DeepFlow(DenseMethod):
         self.counts["codec_copies_left_out"] += 1
         return copied, False
 
+    def _outline_state(self, flow: np.ndarray, region: _Region, reference: np.ndarray,
+                       current: np.ndarray) -> tuple[bool | None, np.ndarray | None, bool]:
+        """Whether the region's background stands still (see :func:`_background_static`; None: no
+        member, or not known) and its outline's profiles a codec copied (see
+        :meth:`_copied_profiles`; not looked for where the outline is refused anyway, nor counted
+        as left out): ``(static, skip, frozen)``."""
+        static = None if region.member is None else _background_static(flow, region, reference, current)
+        region.static_known = static is not None
+        skip, frozen = (None, False) if static is False else self._copied_profiles(region, reference, current)
+        return static, skip, frozen
+
     def _count(self, model: str | None, reason: str | None = None) -> None:
         if model is not None:
             self.counts[f"{model}_readings"] += 1
@@ -1499,8 +1528,11 @@ class DeepFlow(DenseMethod):
         dense_u = flow[region.rows, region.cols, 0]
         dense_v = flow[region.rows, region.cols, 1]
         affine, texture, deforms = None, None, False
-        # A texture too weak to be trusted is never taken (see _choose): not fitted at all.
-        strong = region.strong_texture
+        static, skip, frozen = self._outline_state(flow, region, reference, current)
+        # A texture too weak to be trusted is never taken (see _choose): not fitted at all; one
+        # just short of it is, as a strong one, where the codec froze the outline (see
+        # FROZEN_TEXTURE_GRADIENT).
+        strong = region.strong_texture or (frozen and region.texture_beside_frozen_outline)
         if strong:
             start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
             texture = None if start is None else self._texture_fit(region, current, start)
@@ -1511,10 +1543,6 @@ class DeepFlow(DenseMethod):
             # (Frames are lossless where the bias correction is on: see bias_correction.)
             deforms = _deforms(region, dense_u, dense_v, lossless=self._bias_on)
         outline, fit, along = None, None, None
-        static = None if region.member is None else _background_static(flow, region, reference, current)
-        region.static_known = static is not None
-        # (Not looked for where the outline is refused anyway: nor counted as left out.)
-        skip, frozen = (None, False) if static is False else self._copied_profiles(region, reference, current)
         if static is False:
             self._count(None, "outline_background_moves")
         elif frozen and affine is not None:
@@ -1636,7 +1664,7 @@ class DeepFlow(DenseMethod):
             # bar swung +-35 px: 8.4 px between two frames, read 5.7 px short).
             return None
         skip, frozen = self._copied_profiles(region, reference, current)
-        if frozen and region.strong_texture:
+        if frozen and (region.strong_texture or region.texture_beside_frozen_outline):
             return None  # measured in full, where the outline is refused for the texture's fit
         prior = np.column_stack(member.field.uv(region.theta))
         model, systematic, spread = region.key_outline
