@@ -328,24 +328,27 @@ TEXTURE_ENOUGH_PX = 0.012
 # bars 0.23-0.67; textured panel, whole view, bolted plate, slab, girder 1.5-7.7; the shaded
 # column 4.1 across and 0.2 along.
 MIN_TEXTURE_GRADIENT = 1.0
-# Where the codec froze the member's outline (more than COPY_OUTLINE_MAX of its profiles copied
-# from the reference, see _copied_profiles) the outline reads little or no motion; a texture of at
-# least this strength is then fitted (its copies left out) and taken as a strong one is. A faint
-# panel (5 grey levels) moving +-0.3 px at CRF 18, its outline 20 px beyond the mask, strength
-# 0.98-1.02 on two draws: the outline read them 0.193 and 0.199 px RMS, slope 0.14 and 0.08 (no
-# motion at all for 10 frames running), where DIS read 0.103 / 0.77 and 0.094 / 0.83; now 0.117 /
-# 0.83 and 0.090 / 0.84; fainter (4 grey levels, strength about 0.8), three draws 0.148-0.184 ->
-# 0.075-0.118 (DIS 0.077-0.126). A faintly painted bar sliding along itself (4 grey levels,
-# strength 0.93-0.96), whose unchanged edges the codec copies, is read by its texture too: 0.187
-# -> 0.142 px along it (DIS 0.194), 0.001 -> 0.028 across it, where it stands still (DIS 0.023).
-# Above the bench's painted bars (0.23-0.67), whose outlines are read as before.
-FROZEN_TEXTURE_GRADIENT = 0.75
 # ... over the region's pixels more than OUTLINE_CLEAR_PX from the member's outline in the
 # reference: an outline's step is the outline model's to read, and its pixels change layer as
 # the member moves over what is behind it. A thin cable's mask (5 px across a 6 px cable) is all
 # outline: its step made the texture 'strong', and the texture fit over it read 0.12 px RMS
 # where the outline and the dense flow read 0.04.
 OUTLINE_CLEAR_PX = 3.0
+# Where the codec froze the member's outline (more than COPY_OUTLINE_MAX of its profiles copied
+# from the reference, see _copied_profiles; more than FROZEN_TEXTURE_COPIED beside such a texture)
+# the outline reads little or no motion: a texture of at least FROZEN_TEXTURE_GRADIENT is then
+# fitted (its copies left out) and taken as a strong one is, in that frame (a chain of its readings
+# goes on only while the codec keeps the outline frozen). A faint panel (5 grey levels) moving
+# +-0.3 px at CRF 18, its outline 20 px beyond the mask, strength 0.95-0.99 on three draws of six:
+# the outline read them 0.193, 0.147 and 0.199 px RMS, slope 0.14, 0.41 and 0.08 (no motion at
+# all for 10 frames running), where DIS read 0.103 / 0.77, 0.118 / 0.84, 0.094 / 0.83; now 0.100 /
+# 0.89, 0.084 / 0.93, 0.065 / 0.90. x264 copies 39-61 % of its profiles in every frame; a bar
+# moving +-1.5 px, 0-2 % but where it stands nearly still. A faintly painted bar sliding along
+# itself (4 grey levels, strength 0.93-0.96), whose unchanged edges the codec copies, is read by
+# its texture too: 0.187 -> 0.147 px along it (DIS 0.194), 0.001 -> 0.014 across it, where it
+# stands still (DIS 0.023). Above the bench's painted bars (0.23-0.67), read as before.
+FROZEN_TEXTURE_GRADIENT = 0.75
+FROZEN_TEXTURE_COPIED = 0.25
 # The outline model needs an outline between two layers: the member and a background that
 # either stands still behind it or moves with it (a plate fixed to the member, a whole view
 # moving), not one that the dense flow drags part of the way. In a full measurement the dense
@@ -588,6 +591,13 @@ class _Region:
         """Whether the region's texture is strong enough to be fitted and taken (see
         MIN_TEXTURE_GRADIENT; a weaker one is never fitted)."""
         return self.texture is not None and min(self.texture_strength) >= MIN_TEXTURE_GRADIENT
+
+    @property
+    def frozen_share(self) -> float:
+        """The share of the outline's profiles a codec copied from the reference above which it
+        is frozen (COPY_OUTLINE_MAX; FROZEN_TEXTURE_COPIED beside a texture just short of strong)."""
+        return FROZEN_TEXTURE_COPIED if not self.strong_texture and self.texture_beside_frozen_outline \
+            else COPY_OUTLINE_MAX
 
     @property
     def texture_beside_frozen_outline(self) -> bool:
@@ -1477,8 +1487,8 @@ class DeepFlow(DenseMethod):
         self.counts["texture_light_blocks"] += found.light_varies
         return found
 
-    def _copied_profiles(self, region: _Region, reference: np.ndarray,
-                         current: np.ndarray) -> tuple[np.ndarray | None, bool]:
+    def _copied_profiles(self, region: _Region, reference: np.ndarray, current: np.ndarray, *,
+                         count: bool = True) -> tuple[np.ndarray | None, bool]:
         """Which of the member's outline profiles a codec copied from the reference (see
         :func:`~flow.methods.deepflow.codecfloor.codec_copies`: their outline pixel) on a lossy
         stream, to be left out of the fit where enough for one stay (None: none left out), and
@@ -1495,11 +1505,11 @@ class DeepFlow(DenseMethod):
         copied = codec_copies(reference, current, rows, cols)
         if not copied.any() or copied.all():
             return None, False
-        if np.mean(copied) > COPY_OUTLINE_MAX:
+        if np.mean(copied) > region.frozen_share:
             return None, True
         if np.count_nonzero(~copied) < member.params.min_profiles:
             return None, False
-        self.counts["codec_copies_left_out"] += 1
+        self.counts["codec_copies_left_out"] += count
         return copied, False
 
     def _outline_state(self, flow: np.ndarray, region: _Region, reference: np.ndarray,
@@ -1529,11 +1539,11 @@ class DeepFlow(DenseMethod):
         dense_v = flow[region.rows, region.cols, 1]
         affine, texture, deforms = None, None, False
         static, skip, frozen = self._outline_state(flow, region, reference, current)
-        # A texture too weak to be trusted is never taken (see _choose): not fitted at all; one
-        # just short of it is, as a strong one, where the codec froze the outline (see
-        # FROZEN_TEXTURE_GRADIENT).
-        strong = region.strong_texture or (frozen and region.texture_beside_frozen_outline)
-        if strong:
+        # A texture too weak to be trusted is never taken (see _choose): not fitted at all; one just
+        # short of it is, as a strong one, where the codec froze the outline (FROZEN_TEXTURE_GRADIENT).
+        strong = region.strong_texture
+        beside_frozen = not strong and frozen and region.texture_beside_frozen_outline
+        if strong or beside_frozen:
             start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
             texture = None if start is None else self._texture_fit(region, current, start)
             if texture is not None and texture.converged and all(np.isfinite(texture.sigma_px)):
@@ -1542,6 +1552,7 @@ class DeepFlow(DenseMethod):
                 texture = None
             # (Frames are lossless where the bias correction is on: see bias_correction.)
             deforms = _deforms(region, dense_u, dense_v, lossless=self._bias_on)
+        strong = strong or (beside_frozen and affine is not None)  # (its fit failed: the outline)
         outline, fit, along = None, None, None
         if static is False:
             self._count(None, "outline_background_moves")
@@ -1642,6 +1653,12 @@ class DeepFlow(DenseMethod):
         None where the fit fails or its mismatch leaves the chain's band (the region is then
         measured in full)."""
         if region.model == "affine":
+            if not region.strong_texture and not self._copied_profiles(region, reference, current, count=False)[1]:
+                # A texture just short of strong is read only where the codec froze the outline
+                # (see FROZEN_TEXTURE_GRADIENT): a frame whose outline it did not freeze is measured
+                # in full (a faint bar moving +-1.5 px, its first frames frozen: their texture's
+                # chain read 30 frames 0.092 px RMS where the outline read 0.062).
+                return None
             previous = region.affine
             start = previous if region.affine_before is None else 2.0 * previous - region.affine_before
             found = self._texture_fit(region, current, start)
