@@ -335,19 +335,22 @@ MIN_TEXTURE_GRADIENT = 1.0
 # where the outline and the dense flow read 0.04.
 OUTLINE_CLEAR_PX = 3.0
 # Where the codec froze the member's outline (more than COPY_OUTLINE_MAX of its profiles copied
-# from the reference, see _copied_profiles; more than FROZEN_TEXTURE_COPIED beside such a texture)
-# the outline reads little or no motion: a texture of at least FROZEN_TEXTURE_GRADIENT is then
-# fitted (its copies left out) and taken as a strong one is, in that frame (a chain of its readings
-# goes on only while the codec keeps the outline frozen). A faint panel (5 grey levels) moving
-# +-0.3 px at CRF 18, its outline 20 px beyond the mask, strength 0.95-0.99 on three draws of six:
-# the outline read them 0.193, 0.147 and 0.199 px RMS, slope 0.14, 0.41 and 0.08 (no motion at
-# all for 10 frames running), where DIS read 0.103 / 0.77, 0.118 / 0.84, 0.094 / 0.83; now 0.100 /
-# 0.89, 0.084 / 0.93, 0.065 / 0.90. x264 copies 39-61 % of its profiles in every frame; a bar
-# moving +-1.5 px, 0-2 % but where it stands nearly still. A faintly painted bar sliding along
-# itself (4 grey levels, strength 0.93-0.96), whose unchanged edges the codec copies, is read by
-# its texture too: 0.187 -> 0.147 px along it (DIS 0.194), 0.001 -> 0.014 across it, where it
-# stands still (DIS 0.023). Above the bench's painted bars (0.23-0.67), read as before.
+# from the reference, see _copied_profiles) the outline reads little or no motion. A texture of at
+# least FROZEN_TEXTURE_GRADIENT, on a stream whose codec leaves its reading within
+# FROZEN_TEXTURE_FLOOR_PX (its codec floor, both axes), is then fitted (the copies left out) and
+# taken as a strong one is, in that frame; beside it an outline is frozen from FROZEN_TEXTURE_COPIED
+# of its profiles copied on. A faint panel (5 grey levels) moving +-0.3 px at CRF 18, its outline
+# 20 px beyond the mask, strength 0.95-0.99 on three draws of six, x264 copying 39-61 % of its
+# profiles in every frame: the outline read them 0.193, 0.147 and 0.199 px RMS, slope 0.14, 0.41
+# and 0.08, where DIS read 0.103 / 0.77, 0.118 / 0.84, 0.094 / 0.83; now 0.100 / 0.89, 0.084 /
+# 0.93, 0.065 / 0.90 (codec floors 0.08-0.11 px). Two reviewers' finds on the first versions: a
+# chain of the texture's readings went on from one frozen frame (a faint bar moving +-1.5 px,
+# frozen in its nearly still first frames, read 0.062 -> 0.092 px; it ends now where the outline
+# is no longer frozen); and faint bars moving +-0.3 px at CRF 23-28 (codec floors 0.13-0.30 px)
+# read 0.154 -> 0.290 and 0.218 -> 0.379 px (DIS 0.173, 0.284) with the texture taken: read as
+# before now. Above the bench's painted bars (0.23-0.67), read as before.
 FROZEN_TEXTURE_GRADIENT = 0.75
+FROZEN_TEXTURE_FLOOR_PX = 0.12
 FROZEN_TEXTURE_COPIED = 0.25
 # The outline model needs an outline between two layers: the member and a background that
 # either stands still behind it or moves with it (a plate fixed to the member, a whole view
@@ -591,19 +594,6 @@ class _Region:
         """Whether the region's texture is strong enough to be fitted and taken (see
         MIN_TEXTURE_GRADIENT; a weaker one is never fitted)."""
         return self.texture is not None and min(self.texture_strength) >= MIN_TEXTURE_GRADIENT
-
-    @property
-    def frozen_share(self) -> float:
-        """The share of the outline's profiles a codec copied from the reference above which it
-        is frozen (COPY_OUTLINE_MAX; FROZEN_TEXTURE_COPIED beside a texture just short of strong)."""
-        return FROZEN_TEXTURE_COPIED if not self.strong_texture and self.texture_beside_frozen_outline \
-            else COPY_OUTLINE_MAX
-
-    @property
-    def texture_beside_frozen_outline(self) -> bool:
-        """Whether the region's texture is strong enough to be fitted and taken, as a strong one
-        is, where the codec froze its outline (see FROZEN_TEXTURE_GRADIENT)."""
-        return self.texture is not None and min(self.texture_strength) >= FROZEN_TEXTURE_GRADIENT
 
     def restart(self) -> None:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
@@ -1505,12 +1495,22 @@ class DeepFlow(DenseMethod):
         copied = codec_copies(reference, current, rows, cols)
         if not copied.any() or copied.all():
             return None, False
-        if np.mean(copied) > region.frozen_share:
-            return None, True
-        if np.count_nonzero(~copied) < member.params.min_profiles:
-            return None, False
+        share = float(np.mean(copied))
+        frozen = share > (FROZEN_TEXTURE_COPIED if self._band_texture(region) else COPY_OUTLINE_MAX)
+        if share > COPY_OUTLINE_MAX or np.count_nonzero(~copied) < member.params.min_profiles:
+            return None, frozen
         self.counts["codec_copies_left_out"] += count
-        return copied, False
+        return copied, frozen
+
+    def _band_texture(self, region: _Region) -> bool:
+        """Whether the region's texture, just short of strong (at least FROZEN_TEXTURE_GRADIENT) on
+        a lossy stream, is read where the codec froze the outline: where the codec leaves its
+        reading precise (its codec floor, measured the first time it is needed, within
+        FROZEN_TEXTURE_FLOOR_PX on both axes)."""
+        if (region.strong_texture or region.texture is None or region.codec_crf is None
+                or min(region.texture_strength) < FROZEN_TEXTURE_GRADIENT):
+            return False
+        return max(self._reported_sigma(region, _TextureSigma((0.0, 0.0)), reading=False)) <= FROZEN_TEXTURE_FLOOR_PX
 
     def _outline_state(self, flow: np.ndarray, region: _Region, reference: np.ndarray,
                        current: np.ndarray) -> tuple[bool | None, np.ndarray | None, bool]:
@@ -1542,7 +1542,7 @@ class DeepFlow(DenseMethod):
         # A texture too weak to be trusted is never taken (see _choose): not fitted at all; one just
         # short of it is, as a strong one, where the codec froze the outline (FROZEN_TEXTURE_GRADIENT).
         strong = region.strong_texture
-        beside_frozen = not strong and frozen and region.texture_beside_frozen_outline
+        beside_frozen = frozen and self._band_texture(region)
         if strong or beside_frozen:
             start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
             texture = None if start is None else self._texture_fit(region, current, start)
@@ -1681,7 +1681,7 @@ class DeepFlow(DenseMethod):
             # bar swung +-35 px: 8.4 px between two frames, read 5.7 px short).
             return None
         skip, frozen = self._copied_profiles(region, reference, current)
-        if frozen and (region.strong_texture or region.texture_beside_frozen_outline):
+        if frozen and (region.strong_texture or self._band_texture(region)):
             return None  # measured in full, where the outline is refused for the texture's fit
         prior = np.column_stack(member.field.uv(region.theta))
         model, systematic, spread = region.key_outline
