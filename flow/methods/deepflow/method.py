@@ -487,11 +487,14 @@ class _OutlineSigma(tuple):
     along the member (see :meth:`_Region.motion`), added once the reading is reported:
     ``ambiguity`` (px), half the farthest along-member motion that matched the POIs about as
     well as the one taken, and ``texture``, whether the taken one is the paint's own fit (its
-    codec floor then counts along the member)."""
+    codec floor then counts along the member); ``reported``, the own sigma reported (see
+    member.PLAUSIBLE_REPORTED; the decisions take the tuple's)."""
 
-    def __new__(cls, sigma: tuple[float, float], ambiguity: float = 0.0, texture: bool = False) -> _OutlineSigma:
+    def __new__(cls, sigma: tuple[float, float], ambiguity: float = 0.0, texture: bool = False,
+                reported: tuple[float, float] | None = None) -> _OutlineSigma:
         made = super().__new__(cls, (float(sigma[0]), float(sigma[1])))
         made.ambiguity, made.texture = float(ambiguity), bool(texture)
+        made.reported = made if reported is None else (float(reported[0]), float(reported[1]))
         return made
 
 
@@ -688,11 +691,12 @@ class _Region:
                                    default=0.0)
         return (*best, state)
 
-    def outline_sigma(self, sigma: tuple[float, float], state: str | None,
-                      at_least: float = 0.0) -> _OutlineSigma:
-        """An outline reading's own ``sigma`` with what its last :meth:`motion` could not see
-        along the member (see :class:`_OutlineSigma`), no less than ``at_least`` (px)."""
-        return _OutlineSigma(sigma, max(self.along_ambiguity, at_least), state == "taken")
+    def outline_sigma(self, fit: MemberFit, state: str | None, at_least: float = 0.0) -> _OutlineSigma:
+        """An outline reading's own sigma (``fit``'s, see :meth:`MemberEdges.mean_sigma`) with what
+        its last :meth:`motion` could not see along the member (see :class:`_OutlineSigma`), no
+        less than ``at_least`` (px)."""
+        return _OutlineSigma(self.member.mean_sigma(fit), max(self.along_ambiguity, at_least), state == "taken",
+                             self.member.mean_sigma(fit, reported=True))
 
     def _mix(self, u: np.ndarray, v: np.ndarray, along: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The motion ``(u, v)`` across the member with ``along`` along it."""
@@ -747,7 +751,8 @@ class _Region:
             if sigma.texture and self.codec_crf is not None:
                 fx, fy = self._codec_floor(along=True)
                 extra = float(np.hypot(extra, np.hypot(t[0] * fx, t[1] * fy)))
-            return (float(np.hypot(sigma[0], t[0] * extra)), float(np.hypot(sigma[1], t[1] * extra)))
+            own = sigma.reported
+            return (float(np.hypot(own[0], t[0] * extra)), float(np.hypot(own[1], t[1] * extra)))
         if not isinstance(sigma, _TextureSigma) or self.codec_crf is None:
             return tuple(sigma)
         return tuple(float(np.hypot(s, f)) for s, f in zip(sigma, self._codec_floor(), strict=True))
@@ -1566,7 +1571,7 @@ class DeepFlow(DenseMethod):
                     reference, current, fit, region.along(dense_u, dense_v), texture=True)
                 region.along_tried, region.along_texture = state is not None, state == "taken"
                 # The edges must not make the POIs' own match worse than the dense flow's.
-                sigma = region.outline_sigma(region.member.mean_sigma(fit), state)
+                sigma = region.outline_sigma(fit, state)
                 if min(sigma) > OUTLINE_MAX_SIGMA_PX:
                     self._count(None, "outline_imprecise")
                 elif _matches(edges, _mismatch(reference, current, region.cols, region.rows, dense_u, dense_v)):
@@ -1622,7 +1627,7 @@ class DeepFlow(DenseMethod):
         region.read_by = model
         if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
             region.model, region.theta, region.key_along = "outline", fit.params, along
-            region.key_outline = (fit.model, fit.systematic, fit.spread)
+            region.key_outline = (fit.model, fit.systematic, fit.spread, fit.reported_systematic)
             region.key_ambiguity = region.along_ambiguity
         elif self._chaining and model == "affine" and not region.rim_rows.size:  # (see _Region.rim_rows)
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
@@ -1684,9 +1689,10 @@ class DeepFlow(DenseMethod):
         if frozen and (region.strong_texture or self._band_texture(region)):
             return None  # measured in full, where the outline is refused for the texture's fit
         prior = np.column_stack(member.field.uv(region.theta))
-        model, systematic, spread = region.key_outline
+        model, systematic, spread, reported = region.key_outline
         fit = member.fit(current, prior, gain=region.gain(current), first=_first_models(model),
-                         enough_spread=TRACKED_SPREAD_RATIO * spread + 1e-3, systematic=systematic, skip=skip)
+                         enough_spread=TRACKED_SPREAD_RATIO * spread + 1e-3, systematic=systematic, skip=skip,
+                         reported_systematic=reported)
         if not fit.ok:
             return None
         u, v, edges, _, state = region.motion(reference, current, fit, region.key_along,
@@ -1699,7 +1705,7 @@ class DeepFlow(DenseMethod):
         step = float(np.hypot(np.mean(now_u - before_u), np.mean(now_v - before_v)))
         # Along the member a tracked frame has the key's motion unless the paint reads its own:
         # what the key could not tell apart there, it cannot either.
-        sigma = region.outline_sigma(member.mean_sigma(fit), state,
+        sigma = region.outline_sigma(fit, state,
                                      at_least=0.0 if state == "taken" else region.key_ambiguity)
         if not (_in_band(edges, region.key_mismatch) and step <= MAX_WARM_STEP_PX
                 and min(sigma) <= OUTLINE_MAX_SIGMA_PX):
