@@ -1560,6 +1560,8 @@ class MemberEdges:
         one's disagree on, each weighted by the inverse of its spread (px, x and y): the
         disagreement a reading reports (see PLAUSIBLE_REPORTED)."""
         plausible = [r for _, r in results if r.spread <= PLAUSIBLE_REPORTED * best + 1e-3]
+        if len(plausible) < 2:
+            return np.zeros(2)  # (one model, or a spread not finite: nothing to disagree on, as PLAUSIBLE's)
         gu, gv = self.poi_field.mean_gradient()
         means = np.array([[gu @ r.theta, gv @ r.theta] for r in plausible])
         weights = np.array([1.0 / max(r.spread, 1e-3) for r in plausible])
