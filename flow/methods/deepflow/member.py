@@ -1544,26 +1544,27 @@ class MemberEdges:
             # best one's spread) disagree on is a systematic error the fit's scatter cannot
             # show: every profile of a straight outline shares its sub-pixel phase, so a
             # model's phase-dependent error is common to all of them. Their spread enters the
-            # uncertainty.
-            plausible = [r for _, r in results if r.spread <= PLAUSIBLE * best + 1e-3]
-            gu, gv = self.poi_field.mean_gradient()
-            means = np.array([[gu @ r.theta, gv @ r.theta] for r in plausible])
-            systematic = means.std(axis=0) if len(plausible) > 1 else np.zeros(2)
-            reported_systematic = self._reported_systematic(results, best)
+            # uncertainty; what a reading reports of it, see PLAUSIBLE_REPORTED.
+            systematic = self._disagreement(results, PLAUSIBLE * best)
+            reported_systematic = self._disagreement(results, PLAUSIBLE_REPORTED * best, weighted=True)
         return MemberFit(True, chosen.theta, self._covariance(chosen), chosen.used, self.n_profiles,
                          chosen.scale, np.array(systematic, np.float64), index, best,
                          len(fitted) == len(every),
                          None if reported_systematic is None else np.array(reported_systematic, np.float64))
 
-    def _reported_systematic(self, results: list[tuple[int, _Solution]], best: float) -> np.ndarray:
-        """What the outline models whose profiles spread at most PLAUSIBLE_REPORTED times the best
-        one's disagree on, each weighted by the inverse of its spread (px, x and y): the
-        disagreement a reading reports (see PLAUSIBLE_REPORTED)."""
-        plausible = [r for _, r in results if r.spread <= PLAUSIBLE_REPORTED * best + 1e-3]
+    def _disagreement(self, results: list[tuple[int, _Solution]], reach: float, *,
+                      weighted: bool = False) -> np.ndarray:
+        """What the outline models of ``results`` whose profiles spread at most ``reach`` px
+        disagree on (px, x and y): the standard deviation of their mean readings, each weighted
+        by the inverse of its spread where ``weighted``; zero with fewer than two (one model, or
+        a spread not finite)."""
+        plausible = [r for _, r in results if r.spread <= reach + 1e-3]
         if len(plausible) < 2:
-            return np.zeros(2)  # (one model, or a spread not finite: nothing to disagree on, as PLAUSIBLE's)
+            return np.zeros(2)
         gu, gv = self.poi_field.mean_gradient()
         means = np.array([[gu @ r.theta, gv @ r.theta] for r in plausible])
+        if not weighted:
+            return means.std(axis=0)
         weights = np.array([1.0 / max(r.spread, 1e-3) for r in plausible])
         weights /= weights.sum()
         return np.sqrt(weights @ (means - weights @ means) ** 2)
