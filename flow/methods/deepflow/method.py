@@ -334,6 +334,12 @@ MIN_TEXTURE_GRADIENT = 1.0
 # outline: its step made the texture 'strong', and the texture fit over it read 0.12 px RMS
 # where the outline and the dense flow read 0.04.
 OUTLINE_CLEAR_PX = 3.0
+# Where the region's shading or texture is strong (MIN_TEXTURE_GRADIENT) across the member, the
+# axis its outline fixes, but not along it (a round column or a pipe shaded across, a girder
+# painted lengthwise), the dense flow sees the motion across and the outline is not fitted: a
+# shaded column's limb darkens into the wall, with no step for the outline models to draw, and
+# their readings spread 0.2-1.6 px.
+SHADED_ACROSS_GRADIENT = MIN_TEXTURE_GRADIENT
 # Where the codec froze the member's outline (more than COPY_OUTLINE_MAX of its profiles copied
 # from the reference, see _copied_profiles) the outline reads little or no motion. A texture of at
 # least FROZEN_TEXTURE_GRADIENT, on a stream whose codec leaves its reading within
@@ -452,10 +458,12 @@ REASONS = {
                                "on both axes (its background seen still)",
     "outline_codec_copied": "an outline refused: the codec copied most of its pixels from the reference "
                             "unchanged (a motion below what it codes: the edges show none)",
+    "outline_shaded_across": "an outline not fitted: the region's own shading or texture is strong across "
+                             "the member, though not along it, and the dense flow reads it",
 }
 # The reasons that count a refusal, not the choice a full measurement made.
 REFUSALS = ("outline_background_moves", "outline_imprecise", "outline_background_unseen", "outline_texture_sharper",
-            "outline_codec_copied")
+            "outline_codec_copied", "outline_shaded_across")
 
 
 def _choose(affine: tuple | None, outline: tuple | None, strong: bool,
@@ -597,6 +605,16 @@ class _Region:
         """Whether the region's texture is strong enough to be fitted and taken (see
         MIN_TEXTURE_GRADIENT; a weaker one is never fitted)."""
         return self.texture is not None and min(self.texture_strength) >= MIN_TEXTURE_GRADIENT
+
+    @property
+    def shaded_across(self) -> bool:
+        """Whether the region's own shading or texture is strong across its member (on the axis its
+        outline fixes, at least SHADED_ACROSS_GRADIENT) though not along it."""
+        if self.member is None or self.texture is None or self.strong_texture:
+            return False
+        normal = self.member.axes[:, 1]
+        across = float(np.hypot(normal[0] * self.texture_strength[0], normal[1] * self.texture_strength[1]))
+        return across >= SHADED_ACROSS_GRADIENT
 
     def restart(self) -> None:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
@@ -1563,6 +1581,8 @@ class DeepFlow(DenseMethod):
             self._count(None, "outline_background_moves")
         elif frozen and affine is not None:
             self._count(None, "outline_codec_copied")
+        elif region.shaded_across:
+            self._count(None, "outline_shaded_across")
         elif region.member is not None:
             prior = flow[region.prior_rows, region.prior_cols].astype(np.float64)
             fit = region.member.fit(current, prior, gain=region.gain(current), camera=camera, skip=skip)
