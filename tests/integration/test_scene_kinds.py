@@ -191,6 +191,15 @@ def _scene(kind: str, seed: int, noise: float = 1.0) -> Clip:
 
         def motion(t, x, y):
             return np.full_like(x, amp[t]), np.zeros_like(x)
+    elif kind == "lengthwise":  # a bar painted in lengthwise stripes (an 8 px period) moving across
+        amp = 3.0 * np.sin(2 * np.pi * 1.7 * t_axis)
+        xs = np.arange(fine[1]) / UP
+        member = np.tile(150.0 + 4.0 * np.sin(2 * np.pi * (xs - 104) / 8), (fine[0], 1)) + _texture(*fine, rng, 1.5)
+        inside[:, 84 * UP:124 * UP] = True
+        mask[15:145, 92:116] = True
+
+        def motion(t, x, y):
+            return np.full_like(x, amp[t]), np.zeros_like(x)
     elif kind == "ibeam-blurred":  # an I-beam's web between its dark flanges, the lens out of focus
         amp = 2.5 * np.sin(2 * np.pi * 1.5 * t_axis)
         xs = np.arange(fine[1]) / UP
@@ -323,7 +332,7 @@ def test_the_default_is_no_worse_than_dis_on_this_kind_of_scene(tmp_path, kind) 
         # in part: where the stripes' texture fit says it fixes the motion it is taken (2 of the 4 keys)
         assert timings["outline_readings"] >= 0.5 * FRAMES
     if kind == "round":  # shaded across: the outline not fitted, the dense flow read (method.SHADED_ACROSS_GRADIENT)
-        assert timings["why_outline_shaded_across"] >= 0.5 * FRAMES and timings["dense_readings"] == FRAMES
+        assert timings["why_outline_shaded_across"] == timings["full_frames"] and timings["dense_readings"] == FRAMES
     # The bound can fail: the same reading 5 % short breaks the slope's.
     assert abs(0.95 * ours[1] - 1.0) > 0.015
 
@@ -357,8 +366,9 @@ def test_a_shaded_round_columns_outline_is_refused_where_it_reads_the_column_wor
 # (DIS 0.11-0.18, the dense flow 0.06-0.08), one of them with every frame flagged (its outlines'
 # disagreement, 0.6-0.9 px, taken as its uncertainty), and 0.30-0.33 px where the mask reaches
 # within 2 px of the limbs (DIS 0.07-0.10), before 2026-12-07. A region whose own shading is
-# strong across its member (method.SHADED_ACROSS_GRADIENT) though not along it is read by the
-# dense flow: 0.057-0.085 px on the four draws, 0.060-0.074 with the wide mask.
+# strong across its member (method.SHADED_ACROSS_GRADIENT) though not on both axes, and whose
+# outlines no blur model draws (method.SHADED_OUTLINE_MISFIT), is read by the dense flow:
+# 0.057-0.085 px on the four draws, 0.060-0.074 with the wide mask.
 @pytest.mark.parametrize(("seed", "half_width"), [(201, None), (203, 38)])
 def test_a_column_shaded_across_is_read_by_the_dense_flow(tmp_path, seed, half_width) -> None:
     clip = _scene("round", seed)
@@ -372,6 +382,15 @@ def test_a_column_shaded_across_is_read_by_the_dense_flow(tmp_path, seed, half_w
           f"valid {ours[2]:.2f}; dis {base[0]:.4f} / {base[1]:.4f}")
     assert ours[0] <= max(1.1 * base[0], 0.05) and abs(ours[1] - 1.0) <= 0.015 and ours[2] >= 0.95
     assert ours[3]["dense_readings"] == FRAMES and ours[3]["outline_readings"] == 0
+
+
+# Not a bar painted in lengthwise stripes, strong across it too, whose outline against the wall is a
+# clean step: a first version of the rule above, without the outline's misfit, read such bars by
+# the dense flow, 0.057 -> 0.090 and 0.071 -> 0.096 px RMS, 4 % short (a reviewer's find).
+def test_a_bar_painted_lengthwise_is_read_by_its_outline(tmp_path) -> None:
+    ours, base = _default_and_dis(tmp_path, "lengthwise", 1)
+    assert ours[0] <= max(1.1 * base[0], 0.05) and abs(ours[1] - 1.0) <= 0.015 and ours[2] >= 0.95
+    assert ours[3]["outline_readings"] >= 0.9 * FRAMES and ours[3]["why_outline_shaded_across"] == 0
 
 
 # A dark deck (grey 60, a faint texture) against a bright, flat sky (215), the mask inside its lower

@@ -1308,6 +1308,12 @@ class MemberEdges:
         bound = IMPLAUSIBLE_MISFIT * max(min(typical), 1.0)
         return tuple(i for i, misfit in enumerate(typical) if misfit <= bound) + (len(BLURS),)
 
+    def best_reference_misfit(self) -> float:
+        """How well the blur model that draws the reference's outlines best draws them (its
+        median misfit, about 1 where it explains a profile to its noise; inf where none located
+        any): well above 1 where the outline is no blurred step (a round column's limb)."""
+        return min(self._reference_misfits())
+
     def _reference_misfits(self) -> list[float]:
         """Each blur model's median misfit of the reference's outlines (about 1 where it explains
         a profile to its noise; inf where it located none)."""

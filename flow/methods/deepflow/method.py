@@ -334,12 +334,19 @@ MIN_TEXTURE_GRADIENT = 1.0
 # outline: its step made the texture 'strong', and the texture fit over it read 0.12 px RMS
 # where the outline and the dense flow read 0.04.
 OUTLINE_CLEAR_PX = 3.0
-# Where the region's shading or texture is strong (MIN_TEXTURE_GRADIENT) across the member, the
-# axis its outline fixes, but not along it (a round column or a pipe shaded across, a girder
-# painted lengthwise), the dense flow sees the motion across and the outline is not fitted: a
-# shaded column's limb darkens into the wall, with no step for the outline models to draw, and
-# their readings spread 0.2-1.6 px.
+# Where the region's shading or texture is strong (SHADED_ACROSS_GRADIENT: the rms of its gradient
+# across the member, the axis its outline fixes) but not on both axes, and no blur model draws the
+# reference's outlines within SHADED_OUTLINE_MISFIT times their noise (the member.MemberEdges.
+# best_reference_misfit: no blurred step there), the dense flow sees the motion across and the
+# outline is not fitted. A round column's limb darkens into the wall (the tests' `round` kind: best
+# misfit 2.2-4.0, the bench's g4-cylinder 3.0): the outline models' readings of a frame spread 0.2-
+# 1.6 px, the one kept read four draws 0.10-0.19 px RMS where the dense flow read 0.06-0.08. A
+# bar painted in lengthwise stripes in front of a textured wall has a clean step for an outline
+# (misfit 1.3) and reads better by it (0.057 px against the dense flow's 0.090; a reviewer's
+# find on a first version of the rule without the misfit); the painted bars of the bench and of
+# the tests misfit 0.2-0.6.
 SHADED_ACROSS_GRADIENT = MIN_TEXTURE_GRADIENT
+SHADED_OUTLINE_MISFIT = 2.0
 # Where the codec froze the member's outline (more than COPY_OUTLINE_MAX of its profiles copied
 # from the reference, see _copied_profiles) the outline reads little or no motion. A texture of at
 # least FROZEN_TEXTURE_GRADIENT, on a stream whose codec leaves its reading within
@@ -551,6 +558,7 @@ class _Region:
     last_mean: tuple[float, float] | None = None  # the POIs' mean motion in the part's last frame
     last_step_px: float = 0.0  # how far it moved from the frame before (see DeepFlow._track)
     texture_strength: tuple[float, float] = (0.0, 0.0)  # the texture's strength away from the outline
+    texture_across: float = 0.0  # and across the member (see SHADED_ACROSS_GRADIENT)
     along_tried: bool = False  # the chain's key's texture along fit converged: its frames try it too
     along_texture: bool = False  # and the key took its along-member motion: its frames take theirs
     along_seen: tuple | None = None  # the texture's along-member motion of the last two frames taking it
@@ -593,11 +601,14 @@ class _Region:
         along_fit = None if fit is None or edges is None else RegionFit(
             reference, rows, cols, bias_correction=bias_correction, max_points=ALONG_POINTS,
             tolerance_px=ALONG_TOLERANCE_PX, rounding_floor=codec_crf is None)
-        strength = (0.0, 0.0) if fit is None else fit.gradient_rms_of(_clear_of(edges, fit.rows, fit.cols))
+        clear = None if fit is None else _clear_of(edges, fit.rows, fit.cols)
+        strength = (0.0, 0.0) if fit is None else fit.gradient_rms_of(clear)
+        across = 0.0 if fit is None or edges is None else fit.gradient_rms_along(clear, edges.axes[:, 1])
         rim_rows, rim_cols = np.nonzero(rim)
         return cls(label, edges, fit, rows, cols, prior_rows, prior_cols,
                    float(np.median(reference[mask])) or 1.0, reference=reference if lossy else None,
                    codec_crf=codec_crf if lossy else None, along_fit=along_fit, texture_strength=strength,
+                   texture_across=across,
                    rim_rows=rim_rows, rim_cols=rim_cols, rim_px=0 if inner is None else inner[1])
 
     @property
@@ -608,13 +619,11 @@ class _Region:
 
     @property
     def shaded_across(self) -> bool:
-        """Whether the region's own shading or texture is strong across its member (on the axis its
-        outline fixes, at least SHADED_ACROSS_GRADIENT) though not along it."""
-        if self.member is None or self.texture is None or self.strong_texture:
-            return False
-        normal = self.member.axes[:, 1]
-        across = float(np.hypot(normal[0] * self.texture_strength[0], normal[1] * self.texture_strength[1]))
-        return across >= SHADED_ACROSS_GRADIENT
+        """Whether the region's own shading or texture is strong across its member, not a strong
+        texture on both axes, and its outline no blurred step (see SHADED_ACROSS_GRADIENT)."""
+        return (self.member is not None and self.texture is not None and not self.strong_texture
+                and self.texture_across >= SHADED_ACROSS_GRADIENT
+                and self.member.best_reference_misfit() >= SHADED_OUTLINE_MISFIT)
 
     def restart(self) -> None:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
@@ -1538,10 +1547,12 @@ class DeepFlow(DenseMethod):
     def _outline_state(self, flow: np.ndarray, region: _Region, reference: np.ndarray,
                        current: np.ndarray) -> tuple[bool | None, np.ndarray | None, bool]:
         """Whether the region's background stands still (see :func:`_background_static`; None: no
-        member, or not known) and its outline's profiles a codec copied (see
+        member, no outline fitted (see SHADED_ACROSS_GRADIENT), or not known) and its outline's profiles a codec copied (see
         :meth:`_copied_profiles`; not looked for where the outline is refused anyway, nor counted
         as left out): ``(static, skip, frozen)``."""
-        static = None if region.member is None else _background_static(flow, region, reference, current)
+        if region.member is None or region.shaded_across:
+            return None, None, False  # (no outline is fitted)
+        static = _background_static(flow, region, reference, current)
         region.static_known = static is not None
         skip, frozen = (None, False) if static is False else self._copied_profiles(region, reference, current)
         return static, skip, frozen
@@ -1558,8 +1569,7 @@ class DeepFlow(DenseMethod):
         ``flow``; None where the dense flow stays (neither fits). ``camera``: the camera's image
         motion (u, v) px at the region, where a background gives it."""
         region.restart()
-        dense_u = flow[region.rows, region.cols, 0]
-        dense_v = flow[region.rows, region.cols, 1]
+        dense_u, dense_v = flow[region.rows, region.cols, 0], flow[region.rows, region.cols, 1]
         affine, texture, deforms = None, None, False
         static, skip, frozen = self._outline_state(flow, region, reference, current)
         # A texture too weak to be trusted is never taken (see _choose): not fitted at all; one just

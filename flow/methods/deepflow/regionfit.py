@@ -290,6 +290,14 @@ class RegionFit:
             return 0.0, 0.0
         return tuple(float(x) for x in np.sqrt(np.mean(kept ** 2, axis=0)))
 
+    def gradient_rms_along(self, keep: np.ndarray, direction: np.ndarray) -> float:
+        """The texture's strength in one ``direction`` (a unit (x, y) vector): the rms of its
+        smoothed gradient's component along it over the fit's pixels ``keep``; 0 where none is kept."""
+        kept = self._smooth_gradient[np.asarray(keep, bool)]
+        if kept.size == 0:
+            return 0.0
+        return float(np.sqrt(np.mean((kept @ np.asarray(direction, np.float64)) ** 2)))
+
     def field(self, params: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The displacement ``(u, v)`` the affine ``params`` give at the pixels (float64)."""
         dx = (np.asarray(cols, np.float64) - self.x0) / self.scale
