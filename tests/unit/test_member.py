@@ -92,15 +92,23 @@ def test_a_fit_by_some_outline_models_first_takes_the_rest_only_where_they_agree
     every = edges.fit(clip.frames[3], prior)
     assert every.ok and every.every_model and every.model in range(len(BLURS) + 1)
     other = (every.model + 1) % (len(BLURS) + 1)
-    key_systematic = np.array([0.01, 0.02])
-    alone = edges.fit(clip.frames[3], prior, first=(other,), systematic=key_systematic)
+    key_systematic, key_reported = np.array([0.01, 0.02]), np.array([0.005, 0.015])
+    alone = edges.fit(clip.frames[3], prior, first=(other,), systematic=key_systematic,
+                      reported_systematic=key_reported)
     assert alone.ok and not alone.every_model and alone.model == other
     assert alone.spread >= every.spread and np.array_equal(alone.systematic, key_systematic)
+    # The disagreement a tracked frame reports is its key's too (see member.PLAUSIBLE_REPORTED).
+    assert np.array_equal(alone.reported_systematic, key_reported)
+    gu, gv = edges.poi_field.mean_gradient()
+    own = np.maximum([gu @ alone.cov @ gu, gv @ alone.cov @ gv], 0.0)
+    assert np.allclose(edges.mean_sigma(alone, reported=True), np.sqrt(own + key_reported ** 2))
+    assert np.allclose(edges.mean_sigma(alone), np.sqrt(own + key_systematic ** 2))
     # Where the first models' best spread is above the limit, every model measures the frame:
     # the fit is the one of all of them, its own models' disagreement included.
-    more = edges.fit(clip.frames[3], prior, first=(other,), enough_spread=0.0, systematic=key_systematic)
+    more = edges.fit(clip.frames[3], prior, first=(other,), enough_spread=0.0, systematic=key_systematic,
+                     reported_systematic=key_reported)
     assert more.every_model and more.model == every.model
-    for name in ("params", "cov", "systematic"):
+    for name in ("params", "cov", "systematic", "reported_systematic"):
         assert np.array_equal(getattr(more, name), getattr(every, name))
     enough = edges.fit(clip.frames[3], prior, first=(every.model,), enough_spread=every.spread)
     assert not enough.every_model and np.array_equal(enough.params, every.params)
