@@ -381,6 +381,29 @@ FROZEN_TEXTURE_COPIED = 0.25
 # scene: the logo plate behind the beam's edge (and the plain wall beside it, which the
 # smoothing drags 0.9 of the way) moves with the beam; refusing its outline left an 8 px
 # strip's imprecise texture fit, 0.080 mm RMS where the outline reads 0.013 (DIS 0.016).
+# Where the background beyond the outline moves with the member on every side (an I-beam's web
+# between its flanges: the profiles' window, SHIFT_HALF px either side of the outline, lies on the
+# member), the profiles matched whole (the last outline model, WHOLE) are the one model that draws
+# what each profile shows: the blur models take the reference's pixels beyond the outline for a
+# background that stands still. On the tests' blurred I-beam (a web 60 px wide between flanges 10
+# px wide, 1.5 px out of focus) a blur model whose outlines agreed best read 0.25-0.45 px short
+# in a frame in four (0.079-0.174 px RMS on four draws, DIS 0.062-0.121), the profiles matched
+# whole 0.021-0.060 px RMS. Not where one side stands still (the workbench's beam: a plate fixed
+# to it behind one edge, the wall beyond the other). The dense flow alone is not enough: over the
+# flat sky beside the tests' dark deck it is dragged with the deck, and the profiles matched whole
+# read it 0.048 -> 0.059 px; the pixels beyond most of the profiles (WITH_SHOWN_SHARE) must show it
+# too, from 3 px beyond the outline (its blur) plus the member's motion (what it moved over or
+# uncovered) to the profiles' reach of 9 px: their two predictions, the reference's pixels where
+# they are and where the member's motion brought them from, differ by at least WITH_EVIDENCE
+# (2 grey levels rms: a flat sky shows nothing either way) and the moved one fits them
+# WITH_SEEN_RATIO times better (the I-beam's: 0.02-0.1 of the still one's misfit). Counted
+# beyond all the profiles, not per side: a deck's spurious profiles inside it, 6 of 43, showed
+# its own outline moving (0.040 -> 0.050 px).
+WHOLE = (len(BLURS),)
+WITH_BAND_PX = (3, 9)  # the pixels beyond the outline that must show it (member.HALF, a profile's reach)
+WITH_EVIDENCE = 4.0  # grey levels squared: the predictions' mean square difference there
+WITH_SEEN_RATIO = 0.25
+WITH_SHOWN_SHARE = 0.5
 BACKGROUND_OFFSET_PX = 6
 BACKGROUND_DRAG = 0.5
 STATIC_MIN_MOTION_PX = 0.5
@@ -564,6 +587,7 @@ class _Region:
     along_seen: tuple | None = None  # the texture's along-member motion of the last two frames taking it
     along_ambiguity: float = 0.0  # px, the last motion's (see motion): what the POIs could not tell apart along
     key_ambiguity: float = 0.0  # and the chain key's
+    key_with: bool = False  # whether the key's background moved with the member (see WHOLE)
     # The mask's POIs beyond the member's outline (a mask drawn past it onto the background, see
     # member.inner_outline): they take the member's mean motion where its outline read it (its
     # background seen standing still), their own dense flow otherwise; rows and cols above are
@@ -629,7 +653,7 @@ class _Region:
         self.model, self.theta, self.key_mismatch, self.key_along = None, None, float("nan"), None
         self.static_known, self.along_tried, self.along_texture, self.along_seen = False, False, False, None
         self.affine, self.affine_before, self.key_residual = None, None, float("nan")
-        self.key_rms, self.key_outline = float("nan"), None
+        self.key_rms, self.key_outline, self.key_with = float("nan"), None, False
 
     def motion(self, reference: np.ndarray, current: np.ndarray, fit: MemberFit,
                along: np.ndarray | None = None, *, texture: bool = False, texture_first: bool = False,
@@ -846,15 +870,12 @@ def _deforms(region: _Region, dense_u: np.ndarray, dense_v: np.ndarray, *, lossl
     return found is not None and found[0] > DEFORM_RATIO * found[1] + floor
 
 
-def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray | None = None,
-                       current: np.ndarray | None = None) -> bool | None:
-    """Whether the dense ``flow`` shows the background beyond the region's outline, on each
-    side of the member, either standing still or moving with the member while the member
-    moves, or its pixels show it moving on its own (see OWN_ACROSS; True too: an outline
-    between two layers either way) (None where the member's motion is too small to tell, or no side has profiles
-    enough to vote); False where a side's background moves part of the way. Given the
-    ``reference`` and ``current`` frames, a side whose flow says part of the way is still or
-    moving with the member where its pixels clearly show it (see :func:`_background_seen`)."""
+def _sides_beyond(flow: np.ndarray, region: _Region) -> tuple | None:
+    """What the dense ``flow`` shows beyond the region's outline: ``(motion, moved, out_x, out_y,
+    sides)``, the member's median motion at its outline and its size, the points read beyond each
+    profile, and for each side of the member with profiles enough to vote, which vote and the
+    median motion beyond them; None where the member's motion is too small to tell (see
+    :func:`_outline_motion`)."""
     member = region.member
     height, width = flow.shape[:2]
     at_profiles = flow[region.prior_rows, region.prior_cols].astype(np.float64)
@@ -866,14 +887,29 @@ def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray 
     outside = flow[np.clip(out_y, 0, height - 1).astype(np.intp),
                    np.clip(out_x, 0, width - 1).astype(np.intp)].astype(np.float64)
     votes &= np.all(np.isfinite(outside), axis=1)
-    tolerance = STATIC_RATIO * moved + STATIC_SLACK_PX
+    sides = [(voting, np.median(outside[voting], axis=0)) for voting in
+             (_voting(votes, hidden, finite, member.side == side) for side in (-1, 1)) if voting is not None]
+    return motion, moved, out_x, out_y, sides
+
+
+def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray | None = None,
+                       current: np.ndarray | None = None) -> bool | None:
+    """Whether the dense ``flow`` shows the background beyond the region's outline, on each
+    side of the member, either standing still or moving with the member while the member
+    moves, or its pixels show it moving on its own (see OWN_ACROSS; True too: an outline
+    between two layers either way) (None where the member's motion is too small to tell, or no side has profiles
+    enough to vote); False where a side's background moves part of the way. Given the
+    ``reference`` and ``current`` frames, a side whose flow says part of the way is still or
+    moving with the member where its pixels clearly show it (see :func:`_background_seen`)."""
+    found = _sides_beyond(flow, region)
+    if found is None:
+        return None
+    motion, moved, out_x, out_y, sides = found
+    member = region.member
+    height, width = flow.shape[:2]
     verdicts = []
-    for side in (-1, 1):
-        voting = _voting(votes, hidden, finite, member.side == side)
-        if voting is None:
-            continue
-        beyond = np.median(outside[voting], axis=0)
-        verdict = (float(np.hypot(*beyond)) <= tolerance
+    for voting, beyond in sides:
+        verdict = (float(np.hypot(*beyond)) <= STATIC_RATIO * moved + STATIC_SLACK_PX
                    or float(np.hypot(*(beyond - motion))) <= WITH_RATIO * moved + STATIC_SLACK_PX)
         if not verdict and reference is not None and current is not None:
             verdict = _background_seen(reference, current, out_x[voting], out_y[voting], motion,
@@ -887,6 +923,47 @@ def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray 
                                           beyond, region.gain(current))
         verdicts.append(verdict)
     return all(verdicts) if verdicts else None
+
+
+def _background_with(flow: np.ndarray, region: _Region, reference: np.ndarray, current: np.ndarray) -> bool:
+    """Whether the dense ``flow`` shows the background beyond the region's outline moving with the
+    member on every side that votes, none of them standing still, and the pixels beyond most of
+    the voting profiles (WITH_SHOWN_SHARE) show it: over the profiles' reach from the outline
+    located in the reference (WITH_BAND_PX, the nearer end moved out by the member's motion), the
+    two predictions of them (standing still, moved with the member) differ by WITH_EVIDENCE and
+    the moved one fits them WITH_SEEN_RATIO times better. The dense flow over a flat sky beside a
+    member is dragged with it (and the codec drags the sky's blocks too): see WHOLE."""
+    found = _sides_beyond(flow, region)
+    if found is None or not found[4]:
+        return False
+    motion, moved, _, _, sides = found
+    member = region.member
+    height, width = reference.shape
+    scale = region.gain(current) or 1.0
+    # Clear of the outline's blur and of what the member's motion moved over (or uncovered).
+    steps = np.arange(WITH_BAND_PX[0] + int(np.ceil(moved)), WITH_BAND_PX[1] + 1)[None, :]
+    shown = total = 0
+    for voting, beyond in sides:
+        if not (float(np.hypot(*(beyond - motion))) <= WITH_RATIO * moved + STATIC_SLACK_PX
+                and float(np.hypot(*beyond)) > STATIC_RATIO * moved + STATIC_SLACK_PX):
+            return False
+        vertical, edge = member.vertical[voting, None], member.ref.edge[voting, None]
+        band = steps * member.side[voting, None]
+        xs = np.rint(np.where(vertical, member.px[voting, None], edge + band))
+        ys = np.rint(np.where(vertical, edge + band, member.py[voting, None]))
+        inside = np.isfinite(xs) & np.isfinite(ys) & (xs >= 1) & (xs < width - 1) & (ys >= 1) & (ys < height - 1)
+        cols, rows = np.where(inside, xs, 1).astype(np.intp), np.where(inside, ys, 1).astype(np.intp)
+        still = scale * reference[rows, cols].astype(np.float64)
+        moving = scale * sample(reference, (cols - motion[0]).ravel(), (rows - motion[1]).ravel()).reshape(rows.shape)
+        ok = inside & np.isfinite(moving)
+        seen = current[rows, cols].astype(np.float64)
+        moving = np.where(ok, moving, still)
+        differ = np.sum(np.where(ok, (still - moving) ** 2, 0.0), axis=1)
+        shows = ((differ >= WITH_EVIDENCE * np.count_nonzero(ok, axis=1)) & (np.count_nonzero(ok, axis=1) >= 3)
+                 & (np.sum(np.where(ok, (seen - moving) ** 2, 0.0), axis=1)
+                    <= WITH_SEEN_RATIO * np.sum(np.where(ok, (seen - still) ** 2, 0.0), axis=1)))
+        shown, total = shown + int(np.count_nonzero(shows)), total + shows.size
+    return total > 0 and shown >= WITH_SHOWN_SHARE * total
 
 
 def _outline_motion(at_profiles: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -978,6 +1055,17 @@ def _background_seen(reference: np.ndarray, current: np.ndarray, xs: np.ndarray,
     the misfit of standing still about that difference), and its outline was refused in 3 of 4
     frames. A shaded round column's limb is no such edge: its pixels fit neither (0.3-0.6),
     and its outline stays refused (it read 0.12 px RMS there, the dense flow 0.05)."""
+    found = _predictions(reference, current, xs, ys, motion, gain)
+    if found is None:
+        return False
+    seen, still, moving = found
+    return _clearly(seen, still, moving) or _clearly(seen, moving, still)
+
+
+def _predictions(reference: np.ndarray, current: np.ndarray, xs: np.ndarray, ys: np.ndarray,
+                 motion: np.ndarray, gain: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The pixels ``xs``, ``ys`` of ``current`` and their two predictions from the reference (see
+    :func:`_background_seen`): ``(seen, still, moving)``; None where fewer than 3 have both."""
     scale = 1.0 if gain is None else gain
     cols, rows = xs.astype(np.intp), ys.astype(np.intp)
     still = scale * reference[rows, cols].astype(np.float64)
@@ -985,8 +1073,8 @@ def _background_seen(reference: np.ndarray, current: np.ndarray, xs: np.ndarray,
     seen = current[rows, cols].astype(np.float64)
     ok = np.isfinite(moving)
     if ok.sum() < 3:
-        return False
-    return _clearly(seen[ok], still[ok], moving[ok]) or _clearly(seen[ok], moving[ok], still[ok])
+        return None
+    return seen[ok], still[ok], moving[ok]
 
 
 def _background_own(reference: np.ndarray, current: np.ndarray, xs: np.ndarray, ys: np.ndarray,
@@ -1207,7 +1295,7 @@ class DeepFlow(DenseMethod):
         # (``reach_widened``: dense solves done again with a longer reach, see WIDEN_SHARE.)
         self.counts = dict.fromkeys(("full_frames", "warm_frames", "hidden_frames", "outline_readings", "affine_readings",
                                      "dense_readings", "background_texture_readings", "along_texture", "reach_widened",
-                                     "outline_every_model", "outline_models_left_out", "codec_copies_left_out",
+                                     "outline_every_model", "outline_models_left_out", "codec_copies_left_out", "outline_whole_with",
                                      "texture_light_blocks", "codec_floor_s", "mask_past_outline_px", "rim_filled_frames",
                                      "codec_floor_x_px", "codec_floor_y_px",
                                      *(f"field_window_{w:g}px" for w in (WINDOW_PX, *WIDER_WINDOWS_PX)),
@@ -1554,6 +1642,8 @@ class DeepFlow(DenseMethod):
             return None, None, False  # (no outline is fitted)
         static = _background_static(flow, region, reference, current)
         region.static_known = static is not None
+        region.key_with = static is True and _background_with(flow, region, reference, current)
+        self.counts["outline_whole_with"] += region.key_with
         skip, frozen = (None, False) if static is False else self._copied_profiles(region, reference, current)
         return static, skip, frozen
 
@@ -1594,8 +1684,8 @@ class DeepFlow(DenseMethod):
         elif region.shaded_across:
             self._count(None, "outline_shaded_across")
         elif region.member is not None:
-            prior = flow[region.prior_rows, region.prior_cols].astype(np.float64)
-            fit = region.member.fit(current, prior, gain=region.gain(current), camera=camera, skip=skip)
+            fit = region.member.fit(current, flow[region.prior_rows, region.prior_cols].astype(np.float64),
+                                    gain=region.gain(current), camera=camera, skip=skip, first=WHOLE if region.key_with else None)
             if fit.ok:
                 u, v, edges, along, state = region.motion(
                     reference, current, fit, region.along(dense_u, dense_v), texture=True)
@@ -1720,8 +1810,10 @@ class DeepFlow(DenseMethod):
             return None  # measured in full, where the outline is refused for the texture's fit
         prior = np.column_stack(member.field.uv(region.theta))
         model, systematic, spread, reported = region.key_outline
-        fit = member.fit(current, prior, gain=region.gain(current), first=_first_models(model),
-                         enough_spread=TRACKED_SPREAD_RATIO * spread + 1e-3, systematic=systematic, skip=skip,
+        fit = member.fit(current, prior, gain=region.gain(current),
+                         first=WHOLE if region.key_with else _first_models(model),
+                         enough_spread=np.inf if region.key_with else TRACKED_SPREAD_RATIO * spread + 1e-3,
+                         systematic=systematic, skip=skip,
                          reported_systematic=reported)
         if not fit.ok:
             return None
