@@ -893,24 +893,24 @@ def _sides_beyond(flow: np.ndarray, region: _Region) -> tuple | None:
 
 
 def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray | None = None,
-                       current: np.ndarray | None = None) -> bool | None:
+                       current: np.ndarray | None = None, *, beyond: tuple | None = None) -> bool | None:
     """Whether the dense ``flow`` shows the background beyond the region's outline, on each
     side of the member, either standing still or moving with the member while the member
     moves, or its pixels show it moving on its own (see OWN_ACROSS; True too: an outline
     between two layers either way) (None where the member's motion is too small to tell, or no side has profiles
     enough to vote); False where a side's background moves part of the way. Given the
     ``reference`` and ``current`` frames, a side whose flow says part of the way is still or
-    moving with the member where its pixels clearly show it (see :func:`_background_seen`)."""
-    found = _sides_beyond(flow, region)
+    moving with the member where its pixels clearly show it (see :func:`_background_seen`).
+    ``beyond``: :func:`_sides_beyond`'s, where the caller has it already."""
+    found = _sides_beyond(flow, region) if beyond is None else beyond
     if found is None:
         return None
     motion, moved, out_x, out_y, sides = found
     member = region.member
     height, width = flow.shape[:2]
     verdicts = []
-    for voting, beyond in sides:
-        verdict = (float(np.hypot(*beyond)) <= STATIC_RATIO * moved + STATIC_SLACK_PX
-                   or float(np.hypot(*(beyond - motion))) <= WITH_RATIO * moved + STATIC_SLACK_PX)
+    for voting, median in sides:
+        verdict = _stands_still(median, moved) or _moves_with(median, motion, moved)
         if not verdict and reference is not None and current is not None:
             verdict = _background_seen(reference, current, out_x[voting], out_y[voting], motion,
                                        region.gain(current))
@@ -920,43 +920,51 @@ def _background_static(flow: np.ndarray, region: _Region, reference: np.ndarray 
                 band_y = out_y[voting, None] + np.where(member.vertical[voting, None], band, 0)
                 inside = (band_x >= 1) & (band_x < width - 1) & (band_y >= 1) & (band_y < height - 1)
                 verdict = _background_own(reference, current, band_x[inside], band_y[inside], motion,
-                                          beyond, region.gain(current))
+                                          median, region.gain(current))
         verdicts.append(verdict)
     return all(verdicts) if verdicts else None
 
 
-def _background_with(flow: np.ndarray, region: _Region, reference: np.ndarray, current: np.ndarray) -> bool:
-    """Whether the dense ``flow`` shows the background beyond the region's outline moving with the
-    member on every side that votes, none of them standing still, and the pixels beyond most of
-    the voting profiles (WITH_SHOWN_SHARE) show it: over the profiles' reach from the outline
-    located in the reference (WITH_BAND_PX, the nearer end moved out by the member's motion), the
-    two predictions of them (standing still, moved with the member) differ by WITH_EVIDENCE and
-    the moved one fits them WITH_SEEN_RATIO times better. The dense flow over a flat sky beside a
-    member is dragged with it (and the codec drags the sky's blocks too): see WHOLE."""
-    found = _sides_beyond(flow, region)
-    if found is None or not found[4]:
+def _stands_still(beyond: np.ndarray, moved: float) -> bool:
+    """Whether the dense flow's median motion ``beyond`` an outline stands still (within
+    STATIC_RATIO of the member's motion ``moved``, px, plus the slack)."""
+    return float(np.hypot(*beyond)) <= STATIC_RATIO * moved + STATIC_SLACK_PX
+
+
+def _moves_with(beyond: np.ndarray, motion: np.ndarray, moved: float) -> bool:
+    """Whether the dense flow's median motion ``beyond`` an outline moves with the member's
+    ``motion`` (within WITH_RATIO of its size ``moved``, px, plus the slack)."""
+    return float(np.hypot(*(beyond - motion))) <= WITH_RATIO * moved + STATIC_SLACK_PX
+
+
+def _background_with(found: tuple | None, region: _Region, reference: np.ndarray, current: np.ndarray) -> bool:
+    """Whether the dense flow (``found``: :func:`_sides_beyond`'s) shows the background beyond the
+    region's outline moving with the member on every side that votes, none of them standing still,
+    and the pixels beyond most of the voting profiles (WITH_SHOWN_SHARE) show it: over the
+    profiles' reach from the outline located in the reference (WITH_BAND_PX, the nearer end moved
+    out by the member's motion), the two predictions of them (standing still, moved with the
+    member) differ by WITH_EVIDENCE and the moved one fits them WITH_SEEN_RATIO times better. The
+    dense flow over a flat sky beside a member is dragged with it (and the codec drags the sky's
+    blocks too): see WHOLE."""
+    if found is None:
         return False
     motion, moved, _, _, sides = found
     member = region.member
     height, width = reference.shape
-    scale = region.gain(current) or 1.0
     # Clear of the outline's blur and of what the member's motion moved over (or uncovered).
     steps = np.arange(WITH_BAND_PX[0] + int(np.ceil(moved)), WITH_BAND_PX[1] + 1)[None, :]
     shown = total = 0
     for voting, beyond in sides:
-        if not (float(np.hypot(*(beyond - motion))) <= WITH_RATIO * moved + STATIC_SLACK_PX
-                and float(np.hypot(*beyond)) > STATIC_RATIO * moved + STATIC_SLACK_PX):
+        if _stands_still(beyond, moved) or not _moves_with(beyond, motion, moved):
             return False
         vertical, edge = member.vertical[voting, None], member.ref.edge[voting, None]
         band = steps * member.side[voting, None]
         xs = np.rint(np.where(vertical, member.px[voting, None], edge + band))
         ys = np.rint(np.where(vertical, edge + band, member.py[voting, None]))
         inside = np.isfinite(xs) & np.isfinite(ys) & (xs >= 1) & (xs < width - 1) & (ys >= 1) & (ys < height - 1)
-        cols, rows = np.where(inside, xs, 1).astype(np.intp), np.where(inside, ys, 1).astype(np.intp)
-        still = scale * reference[rows, cols].astype(np.float64)
-        moving = scale * sample(reference, (cols - motion[0]).ravel(), (rows - motion[1]).ravel()).reshape(rows.shape)
+        seen, still, moving = _predicted(reference, current, np.where(inside, xs, 1), np.where(inside, ys, 1),
+                                         motion, region.gain(current))
         ok = inside & np.isfinite(moving)
-        seen = current[rows, cols].astype(np.float64)
         moving = np.where(ok, moving, still)
         differ = np.sum(np.where(ok, (still - moving) ** 2, 0.0), axis=1)
         shows = ((differ >= WITH_EVIDENCE * np.count_nonzero(ok, axis=1)) & (np.count_nonzero(ok, axis=1) >= 3)
@@ -1066,15 +1074,23 @@ def _predictions(reference: np.ndarray, current: np.ndarray, xs: np.ndarray, ys:
                  motion: np.ndarray, gain: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The pixels ``xs``, ``ys`` of ``current`` and their two predictions from the reference (see
     :func:`_background_seen`): ``(seen, still, moving)``; None where fewer than 3 have both."""
-    scale = 1.0 if gain is None else gain
-    cols, rows = xs.astype(np.intp), ys.astype(np.intp)
-    still = scale * reference[rows, cols].astype(np.float64)
-    moving = scale * sample(reference, xs - motion[0], ys - motion[1]).astype(np.float64)
-    seen = current[rows, cols].astype(np.float64)
+    seen, still, moving = _predicted(reference, current, xs, ys, motion, gain)
     ok = np.isfinite(moving)
     if ok.sum() < 3:
         return None
     return seen[ok], still[ok], moving[ok]
+
+
+def _predicted(reference: np.ndarray, current: np.ndarray, xs: np.ndarray, ys: np.ndarray,
+               motion: np.ndarray, gain: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels ``xs``, ``ys`` (any shape) of ``current``, the reference's there (standing still)
+    and where the member's ``motion`` brought them from (NaN where that leaves the frame), both
+    scaled by the frame's ``gain``."""
+    scale = 1.0 if gain is None else gain
+    cols, rows = xs.astype(np.intp), ys.astype(np.intp)
+    still = scale * reference[rows, cols].astype(np.float64)
+    moving = scale * sample(reference, np.ravel(xs - motion[0]), np.ravel(ys - motion[1])).astype(np.float64)
+    return current[rows, cols].astype(np.float64), still, moving.reshape(np.shape(xs))
 
 
 def _background_own(reference: np.ndarray, current: np.ndarray, xs: np.ndarray, ys: np.ndarray,
@@ -1640,9 +1656,10 @@ class DeepFlow(DenseMethod):
         as left out): ``(static, skip, frozen)``."""
         if region.member is None or region.shaded_across:
             return None, None, False  # (no outline is fitted)
-        static = _background_static(flow, region, reference, current)
+        found = _sides_beyond(flow, region)
+        static = _background_static(flow, region, reference, current, beyond=found)
         region.static_known = static is not None
-        region.key_with = static is True and _background_with(flow, region, reference, current)
+        region.key_with = static is True and _background_with(found, region, reference, current)
         self.counts["outline_whole_with"] += region.key_with
         skip, frozen = (None, False) if static is False else self._copied_profiles(region, reference, current)
         return static, skip, frozen
