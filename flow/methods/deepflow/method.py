@@ -261,6 +261,10 @@ ALONG_CLEAR = 0.9
 # bench's painted bars 13-26 % of their time, 8 cost 10 %).
 ALONG_HOP_PX = 1.0
 HOP_ITERATIONS = 8
+# Where the POIs match a start two hops along better than one, and so on, the paint's fit also
+# starts from the farthest hop the match improved to, up to this many (a member sliding along
+# itself farther than a hop in a frame, which the dense flow over its faint paint did not see).
+ALONG_WALK_HOPS = 8
 # A region's texture fit leaves out the pixels a codec copied from the reference (see
 # flow.methods.deepflow.codecfloor.codec_copies: a member moving +-0.3 px at CRF 28 read slope
 # 0.57 with them, DIS 0.68), where at least this share of its pixels stays.
@@ -687,6 +691,22 @@ class _Region:
             tried.append((mixed[2], float(np.mean(along))))
             if mixed[2] < best[2]:
                 best = mixed
+        best, state = self.texture_along(reference, current, u, v, best, tried, texture=texture,
+                                          texture_first=texture_first, tracked=tracked)
+        # What the POIs cannot tell apart along the member: every motion tried that matched them
+        # not clearly worse than the one taken (within 1 / ALONG_CLEAR of its mismatch).
+        taken = float(np.mean(self.along(best[0], best[1])))
+        self.along_ambiguity = max((abs(a - taken) / 2.0 for m, a in tried if m * ALONG_CLEAR <= best[2]),
+                                   default=0.0)
+        return (*best, state)
+
+    def texture_along(self, reference: np.ndarray, current: np.ndarray, u: np.ndarray, v: np.ndarray,
+                       best: tuple, tried: list, *, texture: bool, texture_first: bool,
+                       tracked: bool) -> tuple[tuple, str | None]:
+        """The better of ``best`` (a motion at the POIs, its mismatch and the along-member motion
+        it took from elsewhere) and the region's own texture's along-member motion with the
+        across-member motion of ``(u, v)`` (see :meth:`motion`), and what became of that fit
+        (None, "converged" or "taken"); every motion fitted or sampled is added to ``tried``."""
         state = None
         if (texture or texture_first) and self.along_fit is not None:
             start_u, start_v = best[0], best[1]
@@ -695,32 +715,34 @@ class _Region:
                 start_u, start_v = self._mix(u, v, last if before is None else 2.0 * last - before)
             start = self.along_fit.params_from_flow(start_u, start_v, self.rows, self.cols)
             starts = [] if start is None else [start]
+            walked = []  # the starts a walk along reached (see _walk): fitted as the first is
             if start is not None:
                 # A faint paint a codec rebuilt holds its motion along the member in part only:
                 # the fit has minima a pixel or so apart (the codec's whole-pixel copies), and
                 # the one next to a start the dense flow froze need not be the POIs' best match
                 # (whether the chain's frames try the paint is its own start's, as before).
-                t_dir = self.member.axes[:, 0]
                 for sign in (-1.0, 1.0):
-                    other = start.copy()
-                    other[0] += sign * ALONG_HOP_PX * t_dir[0]
-                    other[3] += sign * ALONG_HOP_PX * t_dir[1]
-                    starts.append(other)
+                    starts.append(self._hop(start, sign))
+                    farther = self._walk(reference, current, u, v, start, sign)
+                    if farther is not None:
+                        walked.append(len(starts))
+                        starts.append(farther)
             candidate = None
             for index, begin in enumerate(starts):
-                if index > 0 and tracked and not texture_first:
+                hop = index > 0 and index not in walked
+                if hop and tracked and not texture_first:
                     # A tracked frame of a chain that does not take the paint's motion samples the
                     # POIs' match at a hop instead of fitting from it (a fit from each cost the
                     # bench's painted bars 10-15 % of their time: their faint paint matches a pixel
                     # along about as well, and is not taken).
-                    hop = self._with_along(reference, current, u, v,
-                                           self.along(*self.along_fit.field(begin, self.rows, self.cols)))
-                    if hop[2] <= best[2]:
+                    sampled = self._with_along(reference, current, u, v,
+                                               self.along(*self.along_fit.field(begin, self.rows, self.cols)))
+                    if sampled[2] <= best[2]:
                         # (An unrefined position counts only where it matches at least as well:
                         # a faint paint matches a pixel along nearly as well almost everywhere.)
-                        tried.append((hop[2], float(np.mean(hop[3]))))
+                        tried.append((sampled[2], float(np.mean(sampled[3]))))
                     continue
-                budget = HOP_ITERATIONS if index > 0 else (ALONG_ITERATIONS if tracked else None)
+                budget = HOP_ITERATIONS if hop else (ALONG_ITERATIONS if tracked else None)
                 found = self.along_fit.fit_translation(current, begin, max_iterations=budget)
                 if not found.converged:
                     continue
@@ -735,12 +757,32 @@ class _Region:
                 best, state = candidate, "taken"
                 own = candidate[3]
                 self.along_seen = (own, None if self.along_seen is None else self.along_seen[0])
-        # What the POIs cannot tell apart along the member: every motion tried that matched them
-        # not clearly worse than the one taken (within 1 / ALONG_CLEAR of its mismatch).
-        taken = float(np.mean(self.along(best[0], best[1])))
-        self.along_ambiguity = max((abs(a - taken) / 2.0 for m, a in tried if m * ALONG_CLEAR <= best[2]),
-                                   default=0.0)
-        return (*best, state)
+        return best, state
+
+    def _hop(self, start: np.ndarray, sign: float, hops: int = 1) -> np.ndarray:
+        """The texture fit's ``start`` moved ``hops`` times ALONG_HOP_PX along the member (``sign``)."""
+        t_dir = self.member.axes[:, 0]
+        other = start.copy()
+        other[0] += sign * hops * ALONG_HOP_PX * t_dir[0]
+        other[3] += sign * hops * ALONG_HOP_PX * t_dir[1]
+        return other
+
+    def _walk(self, reference: np.ndarray, current: np.ndarray, u: np.ndarray, v: np.ndarray,
+              start: np.ndarray, sign: float) -> np.ndarray | None:
+        """The farthest start ALONG_HOP_PX apart along the member (``sign``) beyond the first hop to
+        which the POIs' match keeps improving from hop to hop, up to ALONG_WALK_HOPS hops; None where
+        the second hop matches no better than the first (see ALONG_WALK_HOPS)."""
+        def matched(hops: int) -> float:
+            begin = self._hop(start, sign, hops)
+            return self._with_along(reference, current, u, v,
+                                    self.along(*self.along_fit.field(begin, self.rows, self.cols)))[2]
+        hops, last = 1, matched(1)
+        while hops < ALONG_WALK_HOPS:
+            now = matched(hops + 1)
+            if not now < last:
+                break
+            hops, last = hops + 1, now
+        return None if hops == 1 else self._hop(start, sign, hops)
 
     def outline_sigma(self, fit: MemberFit, state: str | None, at_least: float = 0.0) -> _OutlineSigma:
         """An outline reading's own sigma (``fit``'s, see :meth:`MemberEdges.mean_sigma`) with what
@@ -1677,7 +1719,7 @@ class DeepFlow(DenseMethod):
         motion (u, v) px at the region, where a background gives it."""
         region.restart()
         dense_u, dense_v = flow[region.rows, region.cols, 0], flow[region.rows, region.cols, 1]
-        affine, texture, deforms = None, None, False
+        affine, texture, deforms, outline, fit, along, refined = None, None, False, None, None, None, None
         static, skip, frozen = self._outline_state(flow, region, reference, current)
         # A texture too weak to be trusted is never taken (see _choose): not fitted at all; one just
         # short of it is, as a strong one, where the codec froze the outline (FROZEN_TEXTURE_GRADIENT).
@@ -1693,7 +1735,6 @@ class DeepFlow(DenseMethod):
             # (Frames are lossless where the bias correction is on: see bias_correction.)
             deforms = _deforms(region, dense_u, dense_v, lossless=self._bias_on)
         strong = strong or (beside_frozen and affine is not None)  # (its fit failed: the outline)
-        outline, fit, along = None, None, None
         if static is False:
             self._count(None, "outline_background_moves")
         elif frozen and affine is not None:
@@ -1731,7 +1772,8 @@ class DeepFlow(DenseMethod):
             self._count(None, "outline_texture_sharper")
             outline = None
         chosen, model, reason = _choose(affine, outline, strong, deforms)
-        refined = None
+        if reason == "dense_only":
+            self._dense_along(reference, current, flow, region)
         if reason == "dense_deforms":
             # The dense field read, its small deformations' shortfall taken off (see localfit),
             # and each POI's own uncertainty for the field file ...
@@ -1770,6 +1812,25 @@ class DeepFlow(DenseMethod):
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
             region.key_rms = texture.rms
         return chosen
+
+    def _dense_along(self, reference: np.ndarray, current: np.ndarray, flow: np.ndarray,
+                     region: _Region) -> None:
+        """The dense ``flow`` at the POIs of a region shaded across its member (no outline fitted,
+        see :attr:`_Region.shaded_across`) given its own texture's along-member motion where the
+        POIs match that clearly better (see :meth:`_Region.texture_along`).
+
+        Over a faint texture the dense flow's smoothing holds a member sliding along itself
+        back towards the still background either side of it: the tests' narrow shaded column
+        moving 3 px along its axis read 0.19-0.40 px."""
+        if not region.shaded_across or region.along_fit is None:
+            return
+        dense_u, dense_v = flow[region.rows, region.cols, 0], flow[region.rows, region.cols, 1]
+        dense = (dense_u, dense_v, _mismatch(reference, current, region.cols, region.rows, dense_u, dense_v), None)
+        found, state = region.texture_along(reference, current, dense_u, dense_v, dense, [],
+                                            texture=True, texture_first=False, tracked=False)
+        if state == "taken":
+            flow[region.rows, region.cols, 0], flow[region.rows, region.cols, 1] = found[0], found[1]
+            self.counts["along_texture"] += 1
 
     def _outline_sharper(self, region: _Region, outline: tuple, affine: tuple | None) -> bool:
         """Whether an outline reading is more precise than the texture's (``affine``; None: no
