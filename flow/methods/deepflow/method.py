@@ -680,7 +680,9 @@ class _Region:
         (see :attr:`along_seen`) and takes ALONG_ITERATIONS steps at most; a full measurement's
         from the better of the other two, with the fit's full budget; each also from ALONG_HOP_PX
         either side of its start along the member (HOP_ITERATIONS steps at most in a tracked
-        frame), the best match of them the texture's motion. What the POIs could not tell apart
+        frame) and from the farthest hop the POIs' match keeps improving to (see :meth:`_walk`; the
+        first start's budget), the best match of them the texture's motion (see
+        :meth:`texture_along`). What the POIs could not tell apart
         along the member is left in :attr:`along_ambiguity` (see :meth:`outline_sigma`).
         """
         u, v = self.member.displacement(fit)
