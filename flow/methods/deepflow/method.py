@@ -264,7 +264,7 @@ HOP_ITERATIONS = 8
 # Where the POIs match a start two hops along better than one, and so on, the paint's fit also
 # starts from the farthest hop the match improved to, up to this many (a member sliding along
 # itself farther than a hop in a frame, which the dense flow over its faint paint did not see).
-ALONG_WALK_HOPS = 8
+ALONG_WALK_HOPS = 16
 # A region's texture fit leaves out the pixels a codec copied from the reference (see
 # flow.methods.deepflow.codecfloor.codec_copies: a member moving +-0.3 px at CRF 28 read slope
 # 0.57 with them, DIS 0.68), where at least this share of its pixels stays.
@@ -746,12 +746,20 @@ class _Region:
                     continue
                 budget = HOP_ITERATIONS if hop else (ALONG_ITERATIONS if tracked else None)
                 found = self.along_fit.fit_translation(current, begin, max_iterations=budget)
-                if not found.converged:
+                if not found.converged and (index not in walked or not np.isfinite(found.rms)):
                     continue
-                if index == 0:
-                    state = "converged"
                 own = self.along(*self.along_fit.field(found.params, self.rows, self.cols))
                 mixed = self._with_along(reference, current, u, v, own)
+                if not found.converged and not mixed[2] < ALONG_CLEAR * best[2]:
+                    # A fit over a faint paint closes in on its minimum by a near-constant ratio
+                    # of steps and may end its budget short of converging, near the motion: from
+                    # a walk's start (a column sliding 12 px along read 0.6 px in one frame, its
+                    # fit ending at 10.92 of 10.86), its end counts where the POIs match it clearly
+                    # better (from any start, a bar moving across under a changing light took a
+                    # wrong along motion: 0.06 -> 0.31 px off).
+                    continue
+                if index == 0 and found.converged:
+                    state = "converged"
                 tried.append((mixed[2], float(np.mean(own))))
                 if candidate is None or mixed[2] < candidate[2]:
                     candidate = mixed
