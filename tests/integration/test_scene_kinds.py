@@ -55,6 +55,14 @@ def _down(image: np.ndarray) -> np.ndarray:
     return image.reshape(HEIGHT, UP, WIDTH, UP).mean(axis=(1, 3))
 
 
+def _shaded_column(fine: tuple[int, int], centre: float, radius: float) -> np.ndarray:
+    """A round column's shading on the fine grid ``fine``: bright to dark across it (lit from the
+    left), its limbs darkening, centred on x = ``centre`` px with ``radius`` px; constant along it."""
+    across = np.clip((np.arange(fine[1]) / UP - centre) / radius, -1.0, 1.0)
+    shade = 60 + 150 * np.clip(1.0 - 0.8 * (across + 1.0) / 2.0, 0, 1) * np.sqrt(1 - across ** 2)
+    return np.tile(shade, (fine[0], 1))
+
+
 def _scene(kind: str, seed: int, noise: float = 1.0) -> Clip:
     rng = np.random.default_rng(seed)
     fine = (HEIGHT * UP, WIDTH * UP)
@@ -182,10 +190,7 @@ def _scene(kind: str, seed: int, noise: float = 1.0) -> Clip:
             return np.full_like(x, amp[t]), np.zeros_like(x)
     elif kind == "round":  # a column shaded bright to dark across, with a faint texture
         amp = 3.5 * np.sin(2 * np.pi * 1.9 * t_axis)
-        xs = np.arange(fine[1]) / UP
-        across = np.clip((xs - 84.0) / 40.0, -1.0, 1.0)  # column from x = 44 to 124
-        shade = 60 + 150 * np.clip(1.0 - 0.8 * (across + 1.0) / 2.0, 0, 1) * np.sqrt(1 - across ** 2)
-        member = np.tile(shade, (fine[0], 1)) + 3 * _texture(*fine, rng, 2.0)
+        member = _shaded_column(fine, 84.0, 40.0) + 3 * _texture(*fine, rng, 2.0)  # x = 44 to 124
         inside[:, 44 * UP:124 * UP] = True
         mask[10:150, 66:102] = True
 
@@ -194,10 +199,7 @@ def _scene(kind: str, seed: int, noise: float = 1.0) -> Clip:
     elif kind in ("column-along", "column-along-far"):  # a narrow column shaded across, a faint texture,
         # moving along its axis (+-3 px; +-12 px)
         amp = (3.0 if kind == "column-along" else 12.0) * np.sin(2 * np.pi * 1.7 * t_axis)
-        xs = np.arange(fine[1]) / UP
-        across = np.clip((xs - 104.0) / 20.0, -1.0, 1.0)  # column from x = 84 to 124
-        shade = 60 + 150 * np.clip(1.0 - 0.8 * (across + 1.0) / 2.0, 0, 1) * np.sqrt(1 - across ** 2)
-        member = np.tile(shade, (fine[0], 1)) + 2 * _texture(*fine, rng, 2.0)
+        member = _shaded_column(fine, 104.0, 20.0) + 2 * _texture(*fine, rng, 2.0)  # x = 84 to 124
         inside[:, 84 * UP:124 * UP] = True
         mask[15:145, 92:116] = True
         axis = "y"
