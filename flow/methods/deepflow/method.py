@@ -718,14 +718,16 @@ class _Region:
             start = self.along_fit.params_from_flow(start_u, start_v, self.rows, self.cols)
             starts = [] if start is None else [start]
             walked = []  # the starts a walk along reached (see _walk): fitted as the first is
+            at_hop = {}  # the POIs' match at each first hop (the walk's first step), by its index
             if start is not None:
                 # A faint paint a codec rebuilt holds its motion along the member in part only:
                 # the fit has minima a pixel or so apart (the codec's whole-pixel copies), and
                 # the one next to a start the dense flow froze need not be the POIs' best match
                 # (whether the chain's frames try the paint is its own start's, as before).
                 for sign in (-1.0, 1.0):
+                    at_hop[len(starts)] = self._with_fit_along(reference, current, u, v, self._hop(start, sign))
                     starts.append(self._hop(start, sign))
-                    farther = self._walk(reference, current, u, v, start, sign)
+                    farther = self._walk(reference, current, u, v, start, sign, at_hop[len(starts) - 1][2])
                     if farther is not None:
                         walked.append(len(starts))
                         starts.append(farther)
@@ -737,8 +739,7 @@ class _Region:
                     # POIs' match at a hop instead of fitting from it (a fit from each cost the
                     # bench's painted bars 10-15 % of their time: their faint paint matches a pixel
                     # along about as well, and is not taken).
-                    sampled = self._with_along(reference, current, u, v,
-                                               self.along(*self.along_fit.field(begin, self.rows, self.cols)))
+                    sampled = at_hop[index]
                     if sampled[2] <= best[2]:
                         # (An unrefined position counts only where it matches at least as well:
                         # a faint paint matches a pixel along nearly as well almost everywhere.)
@@ -748,8 +749,8 @@ class _Region:
                 found = self.along_fit.fit_translation(current, begin, max_iterations=budget)
                 if not found.converged and (index not in walked or not np.isfinite(found.rms)):
                     continue
-                own = self.along(*self.along_fit.field(found.params, self.rows, self.cols))
-                mixed = self._with_along(reference, current, u, v, own)
+                mixed = self._with_fit_along(reference, current, u, v, found.params)
+                own = mixed[3]
                 if not found.converged and not mixed[2] < ALONG_CLEAR * best[2]:
                     # A fit over a faint paint closes in on its minimum by a near-constant ratio
                     # of steps and may end its budget short of converging, near the motion: from
@@ -778,15 +779,14 @@ class _Region:
         return other
 
     def _walk(self, reference: np.ndarray, current: np.ndarray, u: np.ndarray, v: np.ndarray,
-              start: np.ndarray, sign: float) -> np.ndarray | None:
-        """The farthest start ALONG_HOP_PX apart along the member (``sign``) beyond the first hop to
-        which the POIs' match keeps improving from hop to hop, up to ALONG_WALK_HOPS hops; None where
-        the second hop matches no better than the first (see ALONG_WALK_HOPS)."""
+              start: np.ndarray, sign: float, first: float) -> np.ndarray | None:
+        """The farthest start ALONG_HOP_PX apart along the member (``sign``) beyond the first hop
+        (where the POIs' mismatch is ``first``) to which the POIs' match keeps improving from hop
+        to hop, up to ALONG_WALK_HOPS hops; None where the second hop matches no better than the
+        first (see ALONG_WALK_HOPS)."""
         def matched(hops: int) -> float:
-            begin = self._hop(start, sign, hops)
-            return self._with_along(reference, current, u, v,
-                                    self.along(*self.along_fit.field(begin, self.rows, self.cols)))[2]
-        hops, last = 1, matched(1)
+            return self._with_fit_along(reference, current, u, v, self._hop(start, sign, hops))[2]
+        hops, last = 1, first
         while hops < ALONG_WALK_HOPS:
             now = matched(hops + 1)
             if not now < last:
@@ -812,6 +812,12 @@ class _Region:
         """:meth:`_mix`, its mismatch, and ``along``."""
         mixed_u, mixed_v = self._mix(u, v, along)
         return mixed_u, mixed_v, _mismatch(reference, current, self.cols, self.rows, mixed_u, mixed_v), along
+
+    def _with_fit_along(self, reference: np.ndarray, current: np.ndarray, u: np.ndarray, v: np.ndarray,
+                        params: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+        """:meth:`_with_along` of the paint's along fit's along-member motion at ``params``."""
+        return self._with_along(reference, current, u, v,
+                                self.along(*self.along_fit.field(params, self.rows, self.cols)))
 
     def along(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """The along-member component of a motion at the POIs."""
