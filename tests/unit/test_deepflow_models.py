@@ -251,6 +251,7 @@ def test_a_thin_members_outline_does_not_make_its_texture_strong() -> None:
     region = deepflow_module._Region.of(reference.astype(np.float32), poi, 1, member=True, texture=True)
     assert min(region.texture.gradient_rms) >= deepflow_module.MIN_TEXTURE_GRADIENT  # the old rule
     assert max(region.texture_strength) < deepflow_module.MIN_TEXTURE_GRADIENT
+    assert region.along_fit is None  # no paint of its own to fit along it (see ALONG_MIN_CLEAR)
     method = deepflow_module.DeepFlow()
     method.bind(reference, poi)
     method.restart()
@@ -267,6 +268,7 @@ def test_a_thin_members_outline_does_not_make_its_texture_strong() -> None:
     render, poi = _cable(30.0, 4.0, (46, 66))
     region = deepflow_module._Region.of(render(0.0).astype(np.float32), poi, 1, member=True, texture=True)
     assert min(region.texture_strength) >= deepflow_module.MIN_TEXTURE_GRADIENT
+    assert region.along_fit is not None
 
 
 def test_an_along_member_motion_beyond_its_uncertainty_moves() -> None:

@@ -252,6 +252,14 @@ CODEC_PRESMOOTH_PX = 0.7
 # is the worse (against the truth, taken wherever it matched better at all: bend 0.21 -> 0.28 px,
 # edge-on-thin 0.12 -> 0.41, tiny 0.07 -> 0.23).
 ALONG_POINTS = 1000
+# ... only where at least this share of the region's pixels lie clear of the outline (see
+# OUTLINE_CLEAR_PX): a thin cable's mask (5 px across a 6 px cable, 2-4 % of it clear) has no
+# paint of its own, only the outline's step and the codec's blocks, and the POIs' match with it
+# (a mask inside a dark member matches it a fraction of a pixel off across as well as on) kept
+# improving along the cable in isolated frames: its fit from a walk's start 3.6-5.7 px along was
+# taken, and through the cable's 3 degree tilt read its motion 0.2-0.3 px off (two draws of
+# bench_scene_kinds' cable, 0.039 and 0.036 px RMS before the walk, 0.054 and 0.076 with it).
+ALONG_MIN_CLEAR = 0.5
 ALONG_ITERATIONS = 20
 ALONG_TOLERANCE_PX = 2e-3
 ALONG_CLEAR = 0.9
@@ -626,10 +634,12 @@ class _Region:
             prior_rows = np.clip(np.rint(inward_y).astype(np.intp), 0, height - 1)
             prior_cols = np.clip(np.rint(inward_x).astype(np.intp), 0, width - 1)
         lossy = fit is not None and codec_crf is not None
-        along_fit = None if fit is None or edges is None else RegionFit(
+        clear = None if fit is None else _clear_of(edges, fit.rows, fit.cols)
+        # The paint's own along fit, where the region has paint of its own: most of its pixels
+        # clear of the outline (see ALONG_MIN_CLEAR).
+        along_fit = None if fit is None or edges is None or not clear.mean() >= ALONG_MIN_CLEAR else RegionFit(
             reference, rows, cols, bias_correction=bias_correction, max_points=ALONG_POINTS,
             tolerance_px=ALONG_TOLERANCE_PX, rounding_floor=codec_crf is None)
-        clear = None if fit is None else _clear_of(edges, fit.rows, fit.cols)
         strength = (0.0, 0.0) if fit is None else fit.gradient_rms_of(clear)
         across = 0.0 if fit is None or edges is None else fit.gradient_rms_along(clear, edges.axes[:, 1])
         rim_rows, rim_cols = np.nonzero(rim)
