@@ -735,9 +735,10 @@ class _Region:
                 # the one next to a start the dense flow froze need not be the POIs' best match
                 # (whether the chain's frames try the paint is its own start's, as before).
                 for sign in (-1.0, 1.0):
-                    at_hop[len(starts)] = self._with_fit_along(reference, current, u, v, self._hop(start, sign))
-                    starts.append(self._hop(start, sign))
-                    farther = self._walk(reference, current, u, v, start, sign, at_hop[len(starts) - 1][2])
+                    first = self._hop(start, sign)
+                    at_hop[len(starts)] = self._with_fit_along(reference, current, u, v, first)
+                    farther = self._walk(reference, current, u, v, start, sign, at_hop[len(starts)][2])
+                    starts.append(first)
                     if farther is not None:
                         walked.append(len(starts))
                         starts.append(farther)
