@@ -395,6 +395,17 @@ def test_a_large_regions_codec_floor_is_measured_in_a_bounded_window(monkeypatch
     assert made[-1] == (20 + 2 * 24, 40 + 2 * 24)
 
 
+def _faint_fit(faint: float, noise: float, seed: int, **options) -> tuple[RegionFit, np.ndarray]:
+    """A fit of a faint texture (``faint`` of the test texture's contrast) under ``noise`` grey
+    levels, and the frame it moved 0.3, 0.1 px in."""
+    rng = np.random.default_rng(seed)
+    texture = 128 + faint * (textured(96, 96, 3) - 128)
+    reference = texture + noise * rng.standard_normal(texture.shape)
+    current = shifted(texture, 0.3, 0.1) + noise * rng.standard_normal(texture.shape)
+    rows, cols = np.mgrid[16:80, 16:80].reshape(2, -1)
+    return RegionFit(reference, rows, cols, bias_correction=False, max_points=1000, **options), current
+
+
 @pytest.mark.parametrize("faint, noise, seed, converges", [(0.03, 0.5, 1, True), (0.03, 1.0, 0, False),
                                                       (1.0, 0.5, 0, True)])
 def test_a_fit_with_a_budget_stops_only_when_it_could_not_converge_within_it(
@@ -405,12 +416,7 @@ def test_a_fit_with_a_budget_stops_only_when_it_could_not_converge_within_it(
     # that converges late within it (at the 20th of 20 here) is not cut short. (Over 48 such
     # fits, 18 converging after 7-20 iterations, none was cut short; of the others 25 stopped
     # after 4-10 of their 20, the rest at 20.)
-    rng = np.random.default_rng(seed)
-    texture = 128 + faint * (textured(96, 96, 3) - 128)
-    reference = texture + noise * rng.standard_normal(texture.shape)
-    current = shifted(texture, 0.3, 0.1) + noise * rng.standard_normal(texture.shape)
-    rows, cols = np.mgrid[16:80, 16:80].reshape(2, -1)
-    fit = RegionFit(reference, rows, cols, bias_correction=False, max_points=1000, tolerance_px=2e-3)
+    fit, current = _faint_fit(faint, noise, seed, tolerance_px=2e-3)
     budget = 20
     found = fit.fit_translation(current, np.zeros(6), max_iterations=budget)
     monkeypatch.setattr(regionfit, "OUT_OF_BUDGET", np.inf)
@@ -420,6 +426,26 @@ def test_a_fit_with_a_budget_stops_only_when_it_could_not_converge_within_it(
         assert found.iterations == whole.iterations and np.array_equal(found.params, whole.params)
     else:
         assert whole.iterations == budget and found.iterations <= 0.25 * budget
+
+
+@pytest.mark.parametrize("noise, seed, converges", [(0.5, 0, True), (1.0, 3, False)])
+def test_a_fit_without_a_budget_stops_once_it_shows_it_cannot_converge(
+        noise: float, seed: int, converges: bool, monkeypatch) -> None:
+    # A fit with its own budget (MAX_ITERATIONS) is judged too, from UNBUDGETED_FIRST on:
+    # before 2026-12-07 one that could not converge (a texture too faint for its noise, a
+    # region deforming beyond any affine field: the Tacoma deck) ran all 40 steps in every
+    # frame. This one converges at the 39th step and is not cut short (judged from the fourth
+    # step, as a caller's budget is, it was stopped at the fourth); the other stops at the 12th.
+    fit, current = _faint_fit(0.02, noise, seed)
+    found = fit.fit_translation(current, np.zeros(6))
+    monkeypatch.setattr(regionfit, "OUT_OF_BUDGET", np.inf)
+    whole = fit.fit_translation(current, np.zeros(6))
+    assert found.converged == whole.converged == converges
+    if converges:
+        assert whole.iterations > 30
+        assert found.iterations == whole.iterations and np.array_equal(found.params, whole.params)
+    else:
+        assert whole.iterations == regionfit.MAX_ITERATIONS and found.iterations <= regionfit.MAX_ITERATIONS // 2
 
 
 @pytest.mark.parametrize("shift", [(-2.3, 0.8), (1.6, -2.2)])

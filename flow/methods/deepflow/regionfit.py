@@ -101,6 +101,13 @@ MIN_INSIDE = 0.5
 # A fit with a budget of iterations (see _out_of_budget) stops once its steps, shrinking as the
 # last ones did, would need more than this factor of it to converge.
 OUT_OF_BUDGET = 1.5
+# ... judged from this step on where the budget is the fit's own (MAX_ITERATIONS; a caller's
+# budget is judged from the fourth). Since 2026-12-07 every fit is judged, not only those given
+# a budget: a region deforming beyond any affine field (the Tacoma deck) or a texture too faint
+# for its noise ran all 40 steps without converging, in every frame. Over 160 synthetic fits on
+# faint textures (102 converging after 8-40 steps; tests/unit/test_regionfit.py), judged from
+# the fourth step on 7 were cut that would have converged, from the 12th none.
+UNBUDGETED_FIRST = 12
 # Pixels the warped region may leave the cut-out window before it is cut again.
 WINDOW_MARGIN_PX = 6
 
@@ -506,7 +513,8 @@ class RegionFit:
                 converged = True
                 break
             moves.append(moved)
-            if max_iterations is not None and _out_of_budget(moves, iteration, max_iterations, self.tolerance_px):
+            if _out_of_budget(moves, iteration, max_iterations or MAX_ITERATIONS, self.tolerance_px,
+                              first=4 if max_iterations is not None else UNBUDGETED_FIRST):
                 break
         if np.hypot(params[0] - start[0], params[3] - start[3]) > MAX_TRAVEL_PX:
             return dataclasses.replace(failed, iterations=iteration)
@@ -657,7 +665,7 @@ def _periodic(fraction: np.ndarray) -> np.ndarray:
     return np.concatenate([np.sin(phase), np.cos(phase) - 1.0], axis=-1)
 
 
-def _out_of_budget(moves: list[float], iteration: int, budget: int, tolerance: float) -> bool:
+def _out_of_budget(moves: list[float], iteration: int, budget: int, tolerance: float, *, first: int = 4) -> bool:
     """Whether a fit whose steps shrink no faster than its last ones did (``moves``: each
     iteration's step, px) cannot reach ``tolerance`` within OUT_OF_BUDGET times its ``budget``
     of iterations. A fit on a faint texture shrinks its steps by a near-constant ratio (the
@@ -666,8 +674,9 @@ def _out_of_budget(moves: list[float], iteration: int, budget: int, tolerance: f
     on, the first with three ratios to judge by (before 2026-12-05 never before half the
     budget: on the bench's painted bars 65 of 90 such fits of lowtex-wide ran 10 steps where 4
     tell; the 16 bench clips' outputs byte-identical, 48 synthetic fits converging after 7-20
-    steps none cut, see tests/unit/test_regionfit.py)."""
-    if iteration < 4:
+    steps none cut, see tests/unit/test_regionfit.py). Judged from step ``first`` on (at least
+    the fourth: three ratios; see UNBUDGETED_FIRST)."""
+    if iteration < max(first, 4):
         return False  # three ratios of steps, at least
     ratio = min(moves[-k] / max(moves[-k - 1], 1e-300) for k in (1, 2, 3))
     if not 0.0 < ratio < 1.0:
