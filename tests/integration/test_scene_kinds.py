@@ -542,9 +542,13 @@ def test_a_tiny_motion_the_codec_mostly_copied_from_the_reference_is_read(tmp_pa
 # outline, the only reading a texture that faint allowed, read no motion at all for 10 frames
 # running (0.199 px RMS, slope 0.08; DIS 0.094 / 0.83) before 2026-12-07. Where the codec froze
 # the outline, a texture of at least method.FROZEN_TEXTURE_GRADIENT is fitted and taken instead
-# (0.065 / 0.90).
-def test_a_faint_panels_texture_is_read_where_the_codec_froze_its_outline(tmp_path) -> None:
-    ours, base = _default_and_dis(tmp_path, "tiny-faint", 106)
+# (0.065 / 0.90). Seed 304 draws a texture just strong (1.04 and 1.09): the outline counted as
+# frozen only from half its profiles copied on (x264 copied 36 % on average), and read 0.203 px RMS,
+# slope 0.05 (DIS 0.079 / 0.75) until a strong texture's outline was judged frozen as a fainter
+# one's is (method.FROZEN_TEXTURE_COPIED): 0.068 / 0.75.
+@pytest.mark.parametrize("seed", [106, 304])
+def test_a_faint_panels_texture_is_read_where_the_codec_froze_its_outline(tmp_path, seed) -> None:
+    ours, base = _default_and_dis(tmp_path, "tiny-faint", seed)
     assert ours[0] <= max(1.1 * base[0], 0.05) and ours[1] >= base[1] - 0.03 and ours[2] >= 0.95
     assert ours[3]["why_outline_codec_copied"] >= 1 and ours[3]["affine_readings"] >= 0.5 * FRAMES
 

@@ -373,7 +373,13 @@ SHADED_OUTLINE_MISFIT = 2.0
 # frozen in its nearly still first frames, read 0.062 -> 0.092 px; it ends now where the outline
 # is no longer frozen); and faint bars moving +-0.3 px at CRF 23-28 (codec floors 0.13-0.30 px)
 # read 0.154 -> 0.290 and 0.218 -> 0.379 px (DIS 0.173, 0.284) with the texture taken: read as
-# before now. Above the bench's painted bars (0.23-0.67), read as before.
+# before now. Above the bench's painted bars (0.23-0.67), read as before. Since 2026-12-07 (night)
+# a strong texture's outline is frozen from FROZEN_TEXTURE_COPIED on too, where its codec floor is
+# as small (before: from COPY_OUTLINE_MAX): four draws of that panel whose texture came out just
+# strong (1.04-1.13), x264 copying 27-50 % of the outline's profiles, read the outline in most
+# frames, 0.094 / 0.89, 0.183 / 0.24, 0.203 / 0.05 and 0.089 / 0.75 px RMS / slope, where the
+# weaker draws read their texture and DIS read 0.095 / 0.83, 0.091 / 0.80, 0.079 / 0.75 and
+# 0.084 / 0.75; now 0.070 / 0.95, 0.084 / 0.84, 0.068 / 0.75 and 0.069 / 0.80.
 FROZEN_TEXTURE_GRADIENT = 0.75
 FROZEN_TEXTURE_FLOOR_PX = 0.12
 FROZEN_TEXTURE_COPIED = 0.25
@@ -1701,7 +1707,7 @@ class DeepFlow(DenseMethod):
         if not copied.any() or copied.all():
             return None, False
         share = float(np.mean(copied))
-        frozen = share > (FROZEN_TEXTURE_COPIED if self._band_texture(region) else COPY_OUTLINE_MAX)
+        frozen = share > (FROZEN_TEXTURE_COPIED if self._texture_reads_frozen(region) else COPY_OUTLINE_MAX)
         if share > COPY_OUTLINE_MAX or np.count_nonzero(~copied) < member.params.min_profiles:
             return None, frozen
         self.counts["codec_copies_left_out"] += count
@@ -1709,10 +1715,16 @@ class DeepFlow(DenseMethod):
 
     def _band_texture(self, region: _Region) -> bool:
         """Whether the region's texture, just short of strong (at least FROZEN_TEXTURE_GRADIENT) on
-        a lossy stream, is read where the codec froze the outline: where the codec leaves its
-        reading precise (its codec floor, measured the first time it is needed, within
-        FROZEN_TEXTURE_FLOOR_PX on both axes)."""
-        if (region.strong_texture or region.texture is None or region.codec_crf is None
+        a lossy stream, is read where the codec froze the outline (see _texture_reads_frozen)."""
+        return not region.strong_texture and self._texture_reads_frozen(region)
+
+    def _texture_reads_frozen(self, region: _Region) -> bool:
+        """Whether the region's texture, at least FROZEN_TEXTURE_GRADIENT on a lossy stream, reads
+        the motion where the codec froze the outline: where the codec leaves its reading precise
+        (its codec floor, measured the first time it is needed, within FROZEN_TEXTURE_FLOOR_PX on
+        both axes). Beside it an outline is frozen from FROZEN_TEXTURE_COPIED of its profiles
+        copied on, a strong texture's as a band texture's."""
+        if (region.texture is None or region.codec_crf is None
                 or min(region.texture_strength) < FROZEN_TEXTURE_GRADIENT):
             return False
         return max(self._reported_sigma(region, _TextureSigma((0.0, 0.0)), reading=False)) <= FROZEN_TEXTURE_FLOOR_PX
