@@ -61,6 +61,16 @@ def unresolved_note(result: Any, filtering: FilterOptions) -> str:
             "pass --max-typical-sigma 0 to vouch for the readings")
 
 
+def rest_note(result: Any) -> str:
+    """The note of a region whose frames averaged into the reference scatter more than their sigma
+    says (see :func:`flow.measure.quality.rest_excess`)."""
+    x, y = result.rest_excess_px
+    return (f"the {result.tracks.reference_average} frames averaged into the reference (at rest, as "
+            f"--reference-average says) read further apart than their sigma says: {x:.3f} px (x), {y:.3f} px (y) "
+            "more, added to every frame's sigma (a codec that rebuilds the texture in each frame, or a "
+            "structure not quite at rest)")
+
+
 def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list[tuple[str, Path]],
                   tracks: Any, run: RunInfo, notes: list[str], scale: Scale,
                   started: float, *, field: Any = None, field_offset_removed: bool = False) -> list[tuple[int, Any]]:
@@ -84,6 +94,11 @@ def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list
                    for label, result in results if result.unresolved]
         for note in flagged:
             print(f"{run.tool}: warning: {note}", file=sys.stderr)
+        restless = [(f"region {label}: " if len(results) > 1 else "") + rest_note(result)
+                    for label, result in results if max(result.rest_excess_px) > 0]
+        for note in restless:
+            print(f"{run.tool}: note: {note}", file=sys.stderr)
+        flagged = restless + flagged
         columns = trackcsv.columns(regions=tracks.region is not None)
         # Serialised first: a bad value fails before any file exists.
         described = {**sidecar(run, filtering, notes + flagged, results, scale, mode, columns, started),
@@ -152,6 +167,7 @@ def _quality(result: Any) -> dict[str, Any]:
             "residual_threshold": finite_or_none(result.residual_threshold),
             "consistency_band_px": finite_or_none(result.consistency_band_px),
             "typical_sigma_px": finite_or_none(result.typical_sigma_px),
+            "rest_excess_px": [finite_or_none(v) for v in result.rest_excess_px],
             "motion": {"axis": result.resolution.axis or None,
                        "sigma_px": finite_or_none(result.resolution.sigma_px),
                        "range_px": finite_or_none(result.resolution.range_px),

@@ -23,7 +23,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -537,9 +537,10 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         raise _no_frames(source, start, stop)
     _one_frame(start, stop, len(collected.frames))
     xy = (readout.xs + np.float32(origin[0]), readout.ys + np.float32(origin[1]))
-    return _assemble(collected, source, regions, xy, reference_frame, offset, digest,
-                     {**_timings(t0, t1, t2, len(collected.frames)), **pool.chain_counts()},
-                     with_camera=background is not None)
+    tracks = _assemble(collected, source, regions, xy, reference_frame, offset, digest,
+                       {**_timings(t0, t1, t2, len(collected.frames)), **pool.chain_counts()},
+                       with_camera=background is not None)
+    return replace(tracks, reference_average=reference_average)
 
 
 def _assemble(collected: _Collected, source: FrameSource, regions: _Regions, xy: tuple[np.ndarray, np.ndarray],
@@ -615,7 +616,8 @@ def track_sparse(source: FrameSource, method: Any, mask: np.ndarray | None, *,
     row = frame_list.index(reference_frame) if reference_frame in frame_list else 0
     return Tracks(frame=np.asarray(frame_list), time_s=np.asarray(times), dx=dx, dy=dy,
                   residual=np.asarray(residuals), x_px=xs.astype(np.float32), y_px=ys.astype(np.float32),
-                  reference_frame=reference_frame, offset_dx=reference_offset(dx, row),
+                  reference_frame=reference_frame, reference_average=reference_average,
+                  offset_dx=reference_offset(dx, row),
                   offset_dy=reference_offset(dy, row), timings_s=_timings(t0, t1, t2, len(frame_list)),
                   truncated=source.truncated, header_frames=source.header_frames,
                   reference_digest=image_digest(reference))

@@ -171,6 +171,7 @@ def load_raw_tracks(paths: Iterable[str | Path], *,
     timings["frames_per_s"] = len(concat["frame"]) / max(timings["frames_s"], 1e-9)
     tracks = Tracks(frame=concat["frame"], time_s=concat["time_s"], dx=dx, dy=dy, residual=concat["residual"],
                     x_px=first.small["x_px"], y_px=first.small["y_px"], reference_frame=reference_frame,
+                    reference_average=int(first.meta["identity"].get("reference_average", 1)),
                     offset_dx=holder.small["offset_dx_px"].astype(np.float64),
                     offset_dy=holder.small["offset_dy_px"].astype(np.float64),
                     timings_s=timings, truncated=any(p.meta["input"]["truncated"] for p in parts),

@@ -87,6 +87,10 @@ class Tracks:
     # light gone: see flow.methods.deepflow.hidden); their readings are kept and flagged.
     # None: the method does not tell.
     hidden: np.ndarray | None = None  # (F,) bool
+    # The reference is the mean of this many frames from reference_frame, taken while the
+    # structure is at rest (--reference-average): their readings should agree (see
+    # flow.measure.quality.rest_excess).
+    reference_average: int = 1
 
     def labels(self) -> list[int]:
         """The regions' labels, ascending ([1] for a run of one region)."""
@@ -149,3 +153,6 @@ class Measurement:
     typical_sigma_px: float = float("nan")  # :func:`flow.measure.quality.typical_sigma`
     unresolved: bool = False  # every frame flagged: resolves neither a sub-pixel reading nor its motion
     resolution: Resolution = field(default_factory=Resolution)
+    # (x, y) px added to every frame's sigma: how much more the frames averaged into the
+    # reference scatter than their sigmas say (flow.measure.quality.rest_excess)
+    rest_excess_px: tuple[float, float] = (0.0, 0.0)

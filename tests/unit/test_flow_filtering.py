@@ -387,3 +387,52 @@ def test_frames_the_method_saw_nothing_in_are_flagged_and_keep_their_readings() 
     # Without the flag the cap's frames pass.
     told = measure(replace(tracks, hidden=None))
     assert told.valid[hidden].all() and not told.valid[50]
+
+
+@pytest.mark.parametrize("rest_error_px, widened", [
+    (0.4, True),    # the workbench's 0.01 bit-per-pixel clip: its 30 frames at rest read 0.74 to -0.54 px
+    (0.1, False),   # frames at rest that scatter as their sigma says
+])
+def test_frames_averaged_into_the_reference_that_scatter_widen_every_sigma(rest_error_px, widened, tmp_path) -> None:
+    """The frames averaged into the reference (--reference-average) are at rest by the user's word:
+    where their readings scatter more than their sigma says, the excess is an error the fits do not
+    see, and every frame's sigma holds it. Without an averaged reference nothing changes; a run
+    tracked in parts and merged gets what the whole run gets."""
+    from flow.measure.formats import load_raw_tracks, save_raw_tracks
+    from flow.measure.quality import measure
+
+    n_frames, rest = 120, 30
+    rng = np.random.default_rng(11)
+    motion = np.where(np.arange(n_frames) < rest, 0.0, 3.0 * np.sin(np.arange(n_frames) / 5.0))
+    # An error common to the frame's POIs (a codec's), as large in the frames at rest as after them
+    common = rest_error_px * rng.standard_normal(n_frames)
+    dx = (motion + common)[:, None] + 0.02 * rng.standard_normal((n_frames, 40))
+    tracks = dataclasses.replace(_tracks(dx, 0.02 * rng.standard_normal((n_frames, 40))),
+                                 sigma_dx=np.full(n_frames, 0.1), sigma_dy=np.full(n_frames, 0.02))
+    alone = measure(tracks)
+    averaged = measure(dataclasses.replace(tracks, reference_average=rest))
+    assert alone.rest_excess_px == (0.0, 0.0)
+    assert averaged.rest_excess_px[1] == 0.0  # dy at rest scatters as its sigma says
+    if widened:
+        assert averaged.rest_excess_px[0] == pytest.approx(np.sqrt(rest_error_px ** 2 - 0.1 ** 2), rel=0.35)
+        assert np.all(averaged.sigma_dx > 2.5 * alone.sigma_dx)
+        # honest now: most frames' errors within 2 sigma, where before most were not
+        error = np.abs(averaged.filtered.dx - motion - np.mean(common[:rest]))
+        assert np.mean(error < 2 * averaged.sigma_dx) > 0.85 > np.mean(error < 2 * alone.sigma_dx)
+    else:
+        assert averaged.rest_excess_px[0] == 0.0
+        assert np.array_equal(averaged.sigma_dx, alone.sigma_dx)
+    # The readings are never touched
+    assert np.array_equal(averaged.filtered.dx, alone.filtered.dx)
+    # Parts (the frames at rest in the first) merged: the same
+    parts = []
+    for name, keep in (("a", np.arange(n_frames) < 50), ("b", np.arange(n_frames) >= 50)):
+        parts.append(tmp_path / f"{name}.npz")
+        save_raw_tracks(parts[-1], dataclasses.replace(
+            tracks, frame=tracks.frame[keep], time_s=tracks.time_s[keep], dx=tracks.dx[keep], dy=tracks.dy[keep],
+            residual=tracks.residual[keep], sigma_dx=tracks.sigma_dx[keep], sigma_dy=tracks.sigma_dy[keep]),
+            {"identity": {"reference_frame": 0, "reference_average": rest, "reference_digest": ""},
+             "input": {"truncated": False, "header_frames": n_frames}})
+    merged = measure(load_raw_tracks(parts)[0])
+    assert merged.rest_excess_px == pytest.approx(averaged.rest_excess_px)
+    assert np.allclose(merged.sigma_dx, averaged.sigma_dx)
