@@ -106,6 +106,16 @@ IMPLAUSIBLE_MISFIT = 16.0
 # frames (0.123 px RMS, DIS 0.072). Their disagreement still enters the reading's uncertainty.
 # The bench's clips whose sharp model draws the reference so: the blur models 0.44-1.48.
 UNCHOSEN_BLUR_MISFIT = 2.0
+# The mirror case, a lens's blur: where a blur model draws the reference's outlines to about their
+# noise (misfit at most BLURRED_DRAWN_MISFIT) and the sharp model misfits them more than
+# SHARP_BLURRED_MISFIT times as badly, the outline is blurred beyond a step and the sharp model,
+# locked to the pixel grid by it, is not used for the frames, on a stream whose codec keeps a
+# step sharp (lossless, or H.264 at a crf of at most SHARP_CODEC_CRF: a phone's quality). A
+# heavier codec smears a sharp outline just so (the tests' bar at CRF 30: sharp 8.3, the 1 px
+# model 0.84), and there the sharp model reads it best (0.226 px RMS; 0.245 without it).
+BLURRED_DRAWN_MISFIT = 1.5
+SHARP_BLURRED_MISFIT = 5.0
+SHARP_CODEC_CRF = 23.0
 # Where the profiles lie on one outline (ONE_OUTLINE_SHARE of them on one side of the member, in
 # one scan direction; a few may lie on the side the grow's reach stopped at, see OVERRUN_LINES), they share
 # its sub-pixel phase, and a blur model's phase-dependent error is common to all of them: their
@@ -1101,6 +1111,7 @@ class MemberEdges:
     def __init__(self) -> None:
         self.params = MemberParams()
         self.lossless = False  # the frames are (see from_reference)
+        self.codec_crf: float | None = None  # a lossy stream's quality (see from_reference)
         self.n_profiles = 0
         self.models: tuple[int, ...] = tuple(range(len(BLURS) + 1))  # see _plausible_models
         self.unchosen: frozenset[int] = frozenset()  # see _unchosen_models
@@ -1109,14 +1120,17 @@ class MemberEdges:
 
     @classmethod
     def from_reference(cls, reference: np.ndarray, mask: np.ndarray, *,
-                       params: MemberParams | None = None, lossless: bool = False) -> MemberEdges:
+                       params: MemberParams | None = None, lossless: bool = False,
+                       codec_crf: float | None = None) -> MemberEdges:
         """Analyse ``reference`` (grey, any dtype) and the bool POI ``mask`` of the same shape;
-        ``lossless``: the frames are (see :meth:`_shift`)."""
+        ``lossless``: the frames are (see :meth:`_shift`); ``codec_crf``: a lossy stream's quality
+        (see SHARP_CODEC_CRF)."""
         if reference.ndim != 2 or mask.shape != reference.shape:
             raise ValueError(f"reference {reference.shape} and mask {mask.shape} must be 2-D of one shape")
         self = cls()
         self.params = params or MemberParams()
         self.lossless = bool(lossless)
+        self.codec_crf = codec_crf
         ref = reference.astype(np.float32)
         mask = mask.astype(bool)
         if mask.sum() < 3:
@@ -1306,7 +1320,13 @@ class MemberEdges:
         always stays."""
         typical = self._reference_misfits()
         bound = IMPLAUSIBLE_MISFIT * max(min(typical), 1.0)
-        return tuple(i for i, misfit in enumerate(typical) if misfit <= bound) + (len(BLURS),)
+        plausible = [i for i, misfit in enumerate(typical) if misfit <= bound]
+        sharp = BLURS.index(0.0)
+        blurred = min((m for i, m in enumerate(typical) if i != sharp), default=np.inf)
+        if ((self.codec_crf is None or self.codec_crf <= SHARP_CODEC_CRF) and blurred <= BLURRED_DRAWN_MISFIT
+                and typical[sharp] > SHARP_BLURRED_MISFIT * max(blurred, 1.0) and sharp in plausible):
+            plausible.remove(sharp)  # a lens's blur (see SHARP_BLURRED_MISFIT)
+        return tuple(plausible) + (len(BLURS),)
 
     def best_reference_misfit(self) -> float:
         """How well the blur model that draws the reference's outlines best draws them (its

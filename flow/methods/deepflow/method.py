@@ -626,7 +626,7 @@ class _Region:
             rim = mask & ~inner[0]
             mask = inner[0]
         rows, cols = np.nonzero(mask)
-        edges = MemberEdges.from_reference(reference, mask, lossless=codec_crf is None) if member else None
+        edges = MemberEdges.from_reference(reference, mask, lossless=codec_crf is None, codec_crf=codec_crf) if member else None
         presmooth = _presmooth(codec_crf)
         fit = (RegionFit(reference, rows, cols, bias_correction=bias_correction, presmooth_px=presmooth,
                          rounding_floor=codec_crf is None)
