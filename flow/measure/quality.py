@@ -273,9 +273,13 @@ def rest_excess(tracks: Tracks, filtered: FilterResult, sigma_dx: np.ndarray, si
     the method's own, without the reference's error, which is common to them all) does not
     cover is an error the fits cannot see (a codec that rebuilds a texture differently in each
     frame), taken as the same in the frames that move. Only a scatter beyond what chance gives
-    n frames whose sigma is right counts (their variance within 2 of its standard errors,
-    ``sqrt(2 / (n - 1))``, of the sigma's square). A structure not quite at rest makes it
-    larger: an uncertainty stated too wide, never too narrow.
+    n frames whose sigma is right counts, and only what lies beyond that bound (their variance
+    more than 2 of its standard errors, ``sqrt(2 / (n - 1))``, above the sigma's square): an
+    estimate on the low side by design. A sigma that holds the reference's error already (a
+    texture fit's, ``Tracks.sigma_holds_reference``) counts it as the frames' own, which makes
+    the excess smaller still. A structure not quite at rest makes it larger: an uncertainty
+    stated too wide. The frames are those of ``tracks``: a run of a ``--frames`` range that holds
+    none or only some of them gets none or a rougher one; parts merged get the whole run's.
     """
     frame = np.asarray(tracks.frame)
     start = tracks.reference_frame

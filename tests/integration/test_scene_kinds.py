@@ -723,3 +723,8 @@ def test_a_bar_blurred_by_the_lens_is_not_read_by_the_sharp_outline_model(tmp_pa
     print(f"blur: default RMSE {ours[0]:.4f} px slope {ours[1]:.4f} valid {ours[2]:.2f}; dis {base[0]:.4f} / {base[1]:.4f}")
     assert ours[0] <= 1.1 * base[0] and abs(ours[1] - 1.0) <= 0.015 and ours[2] >= 0.95
     assert ours[3]["outline_models_left_out"] >= 1
+    # The run takes the stream's crf to the outline: the same bar at CRF 30 keeps every model
+    heavy = tmp_path / "crf30"
+    heavy.mkdir()
+    video = encode(clip, heavy / "clip.mp4", crf=30)
+    assert _run(heavy, clip, video, "default")[3]["outline_models_left_out"] == 0

@@ -401,13 +401,18 @@ def test_frames_averaged_into_the_reference_that_scatter_widen_every_sigma(rest_
     from flow.measure.formats import load_raw_tracks, save_raw_tracks
     from flow.measure.quality import measure
 
-    n_frames, rest = 120, 30
+    # Frames 100-219 of a video, the reference the mean of 130-159 (rows 30-59): the structure
+    # moves before and after them, so rows taken for frame numbers would see motion.
+    n_frames, rest, first = 120, 30, 30
     rng = np.random.default_rng(11)
-    motion = np.where(np.arange(n_frames) < rest, 0.0, 3.0 * np.sin(np.arange(n_frames) / 5.0))
+    row = np.arange(n_frames)
+    at_rest = (row >= first) & (row < first + rest)
+    motion = np.where(at_rest, 0.0, 3.0 * np.sin(row / 5.0))
     # An error common to the frame's POIs (a codec's), as large in the frames at rest as after them
     common = rest_error_px * rng.standard_normal(n_frames)
     dx = (motion + common)[:, None] + 0.02 * rng.standard_normal((n_frames, 40))
     tracks = dataclasses.replace(_tracks(dx, 0.02 * rng.standard_normal((n_frames, 40))),
+                                 frame=100 + row, reference_frame=100 + first,
                                  sigma_dx=np.full(n_frames, 0.1), sigma_dy=np.full(n_frames, 0.02))
     alone = measure(tracks)
     averaged = measure(dataclasses.replace(tracks, reference_average=rest))
@@ -417,7 +422,7 @@ def test_frames_averaged_into_the_reference_that_scatter_widen_every_sigma(rest_
         assert averaged.rest_excess_px[0] == pytest.approx(np.sqrt(rest_error_px ** 2 - 0.1 ** 2), rel=0.35)
         assert np.all(averaged.sigma_dx > 2.5 * alone.sigma_dx)
         # honest now: most frames' errors within 2 sigma, where before most were not
-        error = np.abs(averaged.filtered.dx - motion - np.mean(common[:rest]))
+        error = np.abs(averaged.filtered.dx - motion - np.mean(common[at_rest]))
         assert np.mean(error < 2 * averaged.sigma_dx) > 0.85 > np.mean(error < 2 * alone.sigma_dx)
     else:
         assert averaged.rest_excess_px[0] == 0.0
@@ -431,7 +436,7 @@ def test_frames_averaged_into_the_reference_that_scatter_widen_every_sigma(rest_
         save_raw_tracks(parts[-1], dataclasses.replace(
             tracks, frame=tracks.frame[keep], time_s=tracks.time_s[keep], dx=tracks.dx[keep], dy=tracks.dy[keep],
             residual=tracks.residual[keep], sigma_dx=tracks.sigma_dx[keep], sigma_dy=tracks.sigma_dy[keep]),
-            {"identity": {"reference_frame": 0, "reference_average": rest, "reference_digest": ""},
+            {"identity": {"reference_frame": 100 + first, "reference_average": rest, "reference_digest": ""},
              "input": {"truncated": False, "header_frames": n_frames}})
     merged = measure(load_raw_tracks(parts)[0])
     assert merged.rest_excess_px == pytest.approx(averaged.rest_excess_px)
