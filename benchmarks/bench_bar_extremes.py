@@ -8,7 +8,7 @@ variant here changes the tests' default bar (32 px wide, paint of 2 grey levels,
 149 over a wall of 111 +- 35, +-4 px at 4.3 Hz, 90 frames of 240x160 at 60 fps, H.264 CRF 18)
 in one or two ways (see VARIANTS). Each method runs ``refflow track CLIP --mask MASK --method
 M`` with its defaults; a row gives the default's RMSE, slope and valid share, the best other
-method's RMSE, their ratio and the verdict of issue 30's rule (RMSE within max(1.1 times the
+method's RMSE and slope, their RMSE ratio and the verdict of issue 30's rule (RMSE within max(1.1 times the
 best other's, 0.05 px), slope within 0.015 of 1).
 
     .venv/bin/python benchmarks/bench_bar_extremes.py [--variants wide,blur] [--seeds 401,402]
@@ -73,7 +73,7 @@ def main() -> None:
     methods = args.methods.split(",")
     if methods[0] != "deepflow":
         parser.error("--methods must start with deepflow (the default is what the rows compare)")
-    lines = ["| variant | seed | deepflow RMSE px / slope / valid | best other: RMSE px | ratio | rule | deepflow's readings |",
+    lines = ["| variant | seed | deepflow RMSE px / slope / valid | best other: RMSE px / slope | ratio | rule | deepflow's readings |",
              "|---|---|---|---|---|---|---|"]
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.variants.split(","):
@@ -89,12 +89,13 @@ def main() -> None:
                 others = {m: r["rmse"] for m, r in results.items() if m != "deepflow" and "rmse" in r}
                 best_name = min(others, key=others.get) if others else "-"
                 best = others.get(best_name, np.nan)
+                best_slope = results[best_name]["slope"] if best_name in results else np.nan
                 if "rmse" in ours:
                     cell = f"{ours['rmse']:.3f} / {ours['slope']:.3f} / {ours['valid']:.2f}"
                     ratio = f"{ours['rmse'] / best:.2f}" if np.isfinite(best) else "-"
                 else:
                     cell, ratio = f"failed: {ours['error']}", "-"
-                lines.append(f"| {name} | {seed} | {cell} | `{best_name}` {best:.3f} | {ratio} | "
+                lines.append(f"| {name} | {seed} | {cell} | `{best_name}` {best:.3f} / {best_slope:.3f} | {ratio} | "
                              f"{verdict(ours, best)} | {ours.get('models', '')} |")
                 print(lines[-1], flush=True)
     table = "\n".join(["Variants (each changes the tests' default bar):", ""]
