@@ -90,18 +90,17 @@ def write_outputs(outputs: OutputOptions, filtering: FilterOptions, inputs: list
         mode, results = measure_regions(tracks, filtering, run.method_kind == "sparse")
         # This measurement's own verdict: the sidecar's notes, never a raw-tracks part's (a
         # merge of parts measures again, maybe with another limit).
-        flagged = [(f"region {label}: " if len(results) > 1 else "") + unresolved_note(result, filtering)
-                   for label, result in results if result.unresolved]
-        for note in flagged:
-            print(f"{run.tool}: warning: {note}", file=sys.stderr)
-        restless = [(f"region {label}: " if len(results) > 1 else "") + rest_note(result)
-                    for label, result in results if max(result.rest_excess_px) > 0]
-        for note in restless:
-            print(f"{run.tool}: note: {note}", file=sys.stderr)
-        flagged = restless + flagged
+        def region(label: int) -> str:
+            return f"region {label}: " if len(results) > 1 else ""
+
+        flagged = [region(label) + unresolved_note(result, filtering) for label, result in results if result.unresolved]
+        restless = [region(label) + rest_note(result) for label, result in results if max(result.rest_excess_px) > 0]
+        for level, said in (("warning", flagged), ("note", restless)):
+            for note in said:
+                print(f"{run.tool}: {level}: {note}", file=sys.stderr)
         columns = trackcsv.columns(regions=tracks.region is not None)
         # Serialised first: a bad value fails before any file exists.
-        described = {**sidecar(run, filtering, notes + flagged, results, scale, mode, columns, started),
+        described = {**sidecar(run, filtering, notes + restless + flagged, results, scale, mode, columns, started),
                      "csv": Path(outputs.csv).name}  # which output it describes (two may share it: a, a.csv)
         sidecar_text = json_text(described)
     finals = output_names(outputs, inputs)

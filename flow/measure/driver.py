@@ -23,7 +23,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -537,15 +537,14 @@ def track_dense(source: FrameSource, factory: Callable[[], Any], poi_xy: np.ndar
         raise _no_frames(source, start, stop)
     _one_frame(start, stop, len(collected.frames))
     xy = (readout.xs + np.float32(origin[0]), readout.ys + np.float32(origin[1]))
-    tracks = _assemble(collected, source, regions, xy, reference_frame, offset, digest,
-                       {**_timings(t0, t1, t2, len(collected.frames)), **pool.chain_counts()},
-                       with_camera=background is not None)
-    return replace(tracks, reference_average=reference_average)
+    return _assemble(collected, source, regions, xy, reference_frame, offset, digest,
+                     {**_timings(t0, t1, t2, len(collected.frames)), **pool.chain_counts()},
+                     with_camera=background is not None, reference_average=reference_average)
 
 
 def _assemble(collected: _Collected, source: FrameSource, regions: _Regions, xy: tuple[np.ndarray, np.ndarray],
               reference_frame: int, offset: tuple[np.ndarray, np.ndarray] | None, digest: str,
-              timings: dict[str, float], *, with_camera: bool) -> Tracks:
+              timings: dict[str, float], *, with_camera: bool, reference_average: int) -> Tracks:
     """A dense run's :class:`Tracks` from its collected frames (the reference's offset, eq. 10,
     from the reference frame's own row where ``offset`` is None)."""
     dx, dy = collected.store.arrays()
@@ -559,7 +558,8 @@ def _assemble(collected: _Collected, source: FrameSource, regions: _Regions, xy:
     holds = np.asarray(collected.holds_reference, bool).reshape(len(frame_index), n_regions)
     return Tracks(frame=frame_index, time_s=np.asarray(collected.times), dx=dx, dy=dy,
                   residual=_per_region(collected.residuals, n_regions), x_px=xy[0], y_px=xy[1],
-                  reference_frame=reference_frame, offset_dx=offset[0], offset_dy=offset[1],
+                  reference_frame=reference_frame, reference_average=reference_average,
+                  offset_dx=offset[0], offset_dy=offset[1],
                   timings_s=timings, truncated=source.truncated, header_frames=source.header_frames,
                   reference_digest=digest,
                   camera_dx=None if camera is None else _per_region(camera[..., 0], n_regions),

@@ -715,9 +715,9 @@ def test_a_bar_blurred_by_the_lens_is_not_read_by_the_sharp_outline_model(tmp_pa
     clip = make_clip(seed=403, blur_px=1.5)
     video = encode(clip, tmp_path / "clip.mp4", crf=18)
     reference = decode(video)[0]
-    misfit = {crf: MemberEdges.from_reference(reference, clip.mask, codec_crf=crf) for crf in (18.0, 30.0)}
+    edges = {crf: MemberEdges.from_reference(reference, clip.mask, codec_crf=crf) for crf in (18.0, 30.0)}
     sharp = BLURS.index(0.0)
-    assert sharp not in misfit[18.0].models and sharp in misfit[30.0].models
+    assert sharp not in edges[18.0].models and sharp in edges[30.0].models
     ours = _run(tmp_path, clip, video, "default")
     base = _run(tmp_path, clip, video, "dis", "--method", "dis")
     print(f"blur: default RMSE {ours[0]:.4f} px slope {ours[1]:.4f} valid {ours[2]:.2f}; dis {base[0]:.4f} / {base[1]:.4f}")

@@ -1321,7 +1321,13 @@ class MemberEdges:
         best of all and it was kept, 0.3-0.5 px off (an I-beam's web so blurred, bench_scene_kinds'
         `ibeam`: 0.31 px RMS where DIS read 0.16; 0.030 without it); it misfit that reference 48
         times the noise, the 1 px model 0.7 times. The whole-profile match draws no model and
-        always stays."""
+        always stays.
+
+        Nor the sharp model where a blur model draws the reference's outlines to about their
+        noise and the sharp one misfits them SHARP_BLURRED_MISFIT times as badly, on a stream whose
+        codec keeps a step sharp (``codec_crf`` None or at most SHARP_CODEC_CRF): a lens's blur,
+        short of IMPLAUSIBLE_MISFIT (the tests' bar blurred 1.5 px: 5-12 times, the 1 px model
+        0.8-1.3)."""
         typical = self._reference_misfits()
         bound = IMPLAUSIBLE_MISFIT * max(min(typical), 1.0)
         plausible = [i for i, misfit in enumerate(typical) if misfit <= bound]
