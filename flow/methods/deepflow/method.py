@@ -479,6 +479,16 @@ DEFORM_MATCH_RATIO = 0.9
 # (its limb darkens into the wall: no step to fit) read 0.3-1.8 px this way and 0.19 px RMS,
 # 6 % long, where the dense flow read 0.06; the bench's painted bars stay below 0.4.
 OUTLINE_MAX_SIGMA_PX = 0.5
+# Where it is refused so and the region's texture is too faint to be trusted over an outline
+# (MIN_TEXTURE_GRADIENT), the texture's affine fit is read in place of the dense flow if it
+# resolves the motion by its own account on both axes (its sigma, the codec's error counted,
+# within FAINT_TEXTURE_MAX_SIGMA_PX) and matches the region's pixels at least as well as the
+# dense flow (see _faint_texture). Both read the same faint paint, but the dense flow's
+# smoothing also holds a member whose outline hardly shows back towards the still wall around
+# it: a bar of grey 118 over a wall of 111 +- 35 (bench_bar_extremes' low-contrast, seed 401,
+# H.264 CRF 18), its outline refused in 39 frames of 90, read them 28 % short (0.924 px RMS,
+# slope 0.770, DIS 0.245 / 0.944) where the paint's fit, sigma 0.14-0.30 px, reads 0.241 / 0.970.
+FAINT_TEXTURE_MAX_SIGMA_PX = OUTLINE_MAX_SIGMA_PX
 
 # Why a full measurement took its model: the sidecar's timings count each (``why_<reason>``,
 # a region in a frame), beside the readings of each model and the outlines refused (REFUSALS):
@@ -494,6 +504,9 @@ REASONS = {
     "dense_deforms": "the dense flow; the strong texture shows the region deforming beyond an affine field",
     "texture_matches_better": "the strong texture's affine fit; the dense flow showed the region deforming, "
                               "but its refined field matched the region's pixels clearly worse",
+    "texture_outline_imprecise": "the faint texture's affine fit; the outline was refused as too imprecise, "
+                                 "and the fit resolves the motion on both axes and matches the region's "
+                                 "pixels at least as well as the dense flow",
     "outline_matches_better": "the outline; the dense flow showed the region deforming and the texture's "
                               "fit failed or matched no better, but the refined field matched the region's "
                               "pixels clearly worse than the outline's motion",
@@ -1759,6 +1772,7 @@ class DeepFlow(DenseMethod):
         region.restart()
         dense_u, dense_v = flow[region.rows, region.cols, 0], flow[region.rows, region.cols, 1]
         affine, texture, deforms, outline, fit, along, refined = None, None, False, None, None, None, None
+        imprecise = False  # an outline fitted and refused as too imprecise (OUTLINE_MAX_SIGMA_PX)
         static, skip, frozen = self._outline_state(flow, region, reference, current)
         # A texture too weak to be trusted is never taken (see _choose): not fitted at all; one just
         # short of it is, as a strong one, where the codec froze the outline (FROZEN_TEXTURE_GRADIENT).
@@ -1791,6 +1805,7 @@ class DeepFlow(DenseMethod):
                 sigma = region.outline_sigma(fit, state)
                 if min(sigma) > OUTLINE_MAX_SIGMA_PX:
                     self._count(None, "outline_imprecise")
+                    imprecise = True
                 elif _matches(edges, _mismatch(reference, current, region.cols, region.rows, dense_u, dense_v)):
                     outline = (u, v, sigma)
                     region.key_mismatch = edges
@@ -1811,6 +1826,9 @@ class DeepFlow(DenseMethod):
             self._count(None, "outline_texture_sharper")
             outline = None
         chosen, model, reason = _choose(affine, outline, strong, deforms)
+        if reason == "dense_only" and imprecise and not (region.strong_texture or beside_frozen) and (
+                faint := self._faint_texture(reference, current, region, dense_u, dense_v)) is not None:
+            (texture, chosen), model, reason = faint, "affine", "texture_outline_imprecise"
         if reason == "dense_only":
             self._dense_along(reference, current, flow, region)
         if reason == "dense_deforms":
@@ -1843,14 +1861,44 @@ class DeepFlow(DenseMethod):
                     (region.rows, region.cols, refined[2].astype(np.float32), refined[3].astype(np.float32))]
         self.counts["along_texture"] += model == "outline" and region.along_texture
         region.read_by = model
-        if self._chaining and model == "outline" and not (strong and _along_moves(along, chosen[2])):
+        if self._chaining:
+            self._key(region, model, chosen, fit, along, texture, strong)
+        return chosen
+
+    @staticmethod
+    def _key(region: _Region, model: str, chosen: tuple | None, fit: MemberFit | None, along: np.ndarray | None,
+             texture: RegionMotion | None, strong: bool) -> None:
+        """Make a full measurement that took the outline or the texture's affine fit (``model``,
+        its reading ``chosen``, the ``fit`` or ``texture`` it came from) the key of a chain its next
+        frames are tracked from (see :meth:`_track`): not an outline whose along-member motion
+        moved where the texture is ``strong``, nor a texture fit of a region with a rim."""
+        if model == "outline" and not (strong and _along_moves(along, chosen[2])):
             region.model, region.theta, region.key_along = "outline", fit.params, along
             region.key_outline = (fit.model, fit.systematic, fit.spread, fit.reported_systematic)
             region.key_ambiguity = region.along_ambiguity
-        elif self._chaining and model == "affine" and not region.rim_rows.size:  # (see _Region.rim_rows)
+        elif model == "affine" and not region.rim_rows.size:  # (see _Region.rim_rows)
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
             region.key_rms = texture.rms
-        return chosen
+
+    def _faint_texture(self, reference: np.ndarray, current: np.ndarray, region: _Region,
+                       dense_u: np.ndarray, dense_v: np.ndarray) -> tuple[RegionMotion, tuple] | None:
+        """The fit of a region's texture too faint to be trusted over an outline, and its reading,
+        where it replaces the dense flow's (``dense_u``, ``dense_v`` at the POIs) after the outline
+        was refused as too imprecise (see FAINT_TEXTURE_MAX_SIGMA_PX); None where the region has no
+        texture to fit, the fit fails, or it is not precise enough or matches worse."""
+        if region.texture is None:
+            return None
+        start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
+        found = None if start is None else self._texture_fit(region, current, start)
+        if found is None or not (found.converged and all(np.isfinite(found.sigma_px))):
+            return None
+        reading = region.texture_reading(found)
+        if max(self._reported_sigma(region, reading[2], reading=False)) > FAINT_TEXTURE_MAX_SIGMA_PX:
+            return None
+        matched = _mismatch(reference, current, region.cols, region.rows, reading[0], reading[1])
+        if matched > _mismatch(reference, current, region.cols, region.rows, dense_u, dense_v):
+            return None
+        return found, reading
 
     def _dense_along(self, reference: np.ndarray, current: np.ndarray, flow: np.ndarray,
                      region: _Region) -> None:
