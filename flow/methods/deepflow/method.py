@@ -1861,7 +1861,7 @@ class DeepFlow(DenseMethod):
                     (region.rows, region.cols, refined[2].astype(np.float32), refined[3].astype(np.float32))]
         self.counts["along_texture"] += model == "outline" and region.along_texture
         region.read_by = model
-        if self._chaining:
+        if self._chaining and reason != "texture_outline_imprecise":  # (the faint texture's next frame: in full)
             self._key(region, model, chosen, fit, along, texture, strong)
         return chosen
 
