@@ -733,8 +733,9 @@ def test_a_bar_blurred_by_the_lens_is_not_read_by_the_sharp_outline_model(tmp_pa
 # The tests' painted bar in a grey (118) close to its wall's (111 +- 35), H.264 CRF 18: where the
 # bar stands over the wall's own greys its outline hardly shows, and in 39 frames of 90 the
 # outline fit was refused as too imprecise (sigma above 0.5 px on both axes). The dense flow
-# read those frames instead, its smoothing holding the faint bar back towards the still wall: 28 %
-# short, 0.924 px RMS, slope 0.770, where DIS read 0.245 / 0.944 (before 2026-12-08). The bar's
+# read those frames instead, its smoothing holding the faint bar back towards the still wall:
+# 1.0-1.7 px short where it stood 4-5.5 px out, the clip 0.924 px RMS, slope 0.770, where DIS
+# read 0.245 / 0.944 (before 2026-12-08). The bar's
 # own faint paint, fitted over the mask alone, resolves them (sigma 0.14-0.30 px with the
 # codec's error) and reads 0.241 / 0.970 (method.FAINT_TEXTURE_MAX_SIGMA_PX).
 def test_a_faint_bar_whose_outline_is_refused_is_read_by_its_paint_not_the_dense_flow(tmp_path) -> None:
@@ -745,6 +746,6 @@ def test_a_faint_bar_whose_outline_is_refused_is_read_by_its_paint_not_the_dense
     print(f"low contrast: default RMSE {ours[0]:.4f} px slope {ours[1]:.4f} valid {ours[2]:.2f}; "
           f"dis {base[0]:.4f} / {base[1]:.4f}; readings {ours[3]['affine_readings']:.0f} by the paint")
     assert ours[0] <= 1.1 * base[0] and abs(ours[1] - 1.0) <= abs(base[1] - 1.0) and ours[2] >= 0.95
-    assert ours[3]["why_texture_outline_imprecise"] >= 1
+    assert ours[3]["why_faint_texture"] >= 0.25 * len(clip.truth_px)
     error, sigma, _ = _error_and_sigma(tmp_path, clip)
     assert 0.85 <= np.mean(np.abs(error[1:]) <= 2 * sigma[1:])

@@ -451,6 +451,31 @@ def test_the_photometric_match_takes_a_frames_exposure_out() -> None:
 
 
 
+def test_a_region_whose_outline_is_refused_as_imprecise_reads_its_faint_paint_and_keys_no_chain(monkeypatch) -> None:
+    """Every outline refused as too imprecise (the limit monkeypatched below any sigma): the bar's
+    faint paint (2 grey levels, lossless, 1 grey level of noise) is read by its affine fit in
+    place of the dense flow (``why_faint_texture``), and such a frame keys no chain: the region
+    keeps no model, and each frame is measured in full. The dense flow read these frames 0.19-0.26
+    px short across and 0.12-0.28 px off along; the paint's fit reads them within 0.18 px (its own
+    sigma, 0.01-0.03 px, does not see that error: a texture this faint under noise, see the README)."""
+    monkeypatch.setattr(deepflow_module, "OUTLINE_MAX_SIGMA_PX", -1.0)
+    render, poi = _sliding_bar(2.0, 2.0, noise_grey=1.0)
+    reference = render(0.0, 0.0)
+    method = deepflow_module.DeepFlow()
+    method.bind(reference, poi)
+    method.chain_length = 8
+    method.restart()
+    truth = ((0.6, 0.3), (1.1, -0.4), (1.5, 0.2))
+    for across, along in truth:
+        flow = method.calc(reference, render(across, along))
+        assert abs(float(np.mean(flow[..., 0][poi])) - across) <= 0.18
+        assert abs(float(np.mean(flow[..., 1][poi])) - along) <= 0.18
+        assert method._regions[0].model is None
+    assert method.counts["why_faint_texture"] == method.counts["why_outline_imprecise"] == len(truth)
+    assert method.counts["affine_readings"] == method.counts["full_frames"] == len(truth)
+    assert method.counts["warm_frames"] == 0 and method.last_sigmas_hold_reference == {1}
+
+
 def test_a_chain_does_not_track_an_outline_after_a_step_beyond_its_search() -> None:
     """A bar swinging fast (bench g9-large-motion: +-35 px, 8.4 px between two frames): the
     frame after a step of more than MAX_WARM_STEP_PX was tracked from its predecessor's outline,

@@ -483,11 +483,12 @@ OUTLINE_MAX_SIGMA_PX = 0.5
 # (MIN_TEXTURE_GRADIENT), the texture's affine fit is read in place of the dense flow if it
 # resolves the motion by its own account on both axes (its sigma, the codec's error counted,
 # within FAINT_TEXTURE_MAX_SIGMA_PX) and matches the region's pixels at least as well as the
-# dense flow (see _faint_texture). Both read the same faint paint, but the dense flow's
-# smoothing also holds a member whose outline hardly shows back towards the still wall around
-# it: a bar of grey 118 over a wall of 111 +- 35 (bench_bar_extremes' low-contrast, seed 401,
-# H.264 CRF 18), its outline refused in 39 frames of 90, read them 28 % short (0.924 px RMS,
-# slope 0.770, DIS 0.245 / 0.944) where the paint's fit, sigma 0.14-0.30 px, reads 0.241 / 0.970.
+# dense flow (see _faint_texture; such a reading keys no chain: the next frame is measured in
+# full). Both read the same faint paint, but the dense flow's smoothing also holds a member whose
+# outline hardly shows back towards the still wall around it: a bar of grey 118 over a wall of
+# 111 +- 35 (bench_bar_extremes' low-contrast, seed 401, H.264 CRF 18), its outline refused in 39
+# frames of 90, read them 1.0-1.7 px short where it stood 4-5.5 px out (the clip: 0.924 px RMS,
+# slope 0.770; DIS 0.245 / 0.944) where the paint's fit, sigma 0.14-0.30 px, reads 0.241 / 0.970.
 FAINT_TEXTURE_MAX_SIGMA_PX = OUTLINE_MAX_SIGMA_PX
 
 # Why a full measurement took its model: the sidecar's timings count each (``why_<reason>``,
@@ -504,9 +505,9 @@ REASONS = {
     "dense_deforms": "the dense flow; the strong texture shows the region deforming beyond an affine field",
     "texture_matches_better": "the strong texture's affine fit; the dense flow showed the region deforming, "
                               "but its refined field matched the region's pixels clearly worse",
-    "texture_outline_imprecise": "the faint texture's affine fit; the outline was refused as too imprecise, "
-                                 "and the fit resolves the motion on both axes and matches the region's "
-                                 "pixels at least as well as the dense flow",
+    "faint_texture": "the faint texture's affine fit; the outline was refused as too imprecise, and the fit "
+                     "resolves the motion on both axes and matches the region's pixels at least as well "
+                     "as the dense flow",
     "outline_matches_better": "the outline; the dense flow showed the region deforming and the texture's "
                               "fit failed or matched no better, but the refined field matched the region's "
                               "pixels clearly worse than the outline's motion",
@@ -1298,15 +1299,17 @@ class DeepFlow(DenseMethod):
     with the member (not dragged part of the way) while the member moves
     (:func:`_background_static`; seen so, not only not seen dragged, where the texture is
     strong and the outline no more precise than it) and the outline matches the POIs no worse
-    than the dense flow; else a strong texture however imprecise; else the dense flow. A
-    strong texture's region whose dense flow deforms beyond any affine field (:func:`_deforms`:
-    a sine, a wave) takes the dense flow whatever the models say.
+    than the dense flow; else a strong texture however imprecise; else, where the outline was
+    refused as too imprecise, a fainter texture's fit that resolves the motion on both axes and
+    matches the POIs no worse than the dense flow (:data:`FAINT_TEXTURE_MAX_SIGMA_PX`); else the
+    dense flow. A strong texture's region whose dense flow deforms beyond any affine field
+    (:func:`_deforms`: a sine, a wave) takes the dense flow whatever the models say.
     Through a video the driver hands the frames over in chains (see ``warm``): a chain's
     first frame is measured so, and the rest track each region with the model its key chose,
     from the previous frames' motion, while their photometric mismatch stays in the chain's
     band (on a strong texture, an outline whose along-member motion came from the dense flow
     and is more than its uncertainty is not tracked: its frames are measured in full, see
-    :func:`_along_moves`). The sidecar counts the readings of each model
+    :func:`_along_moves`; nor is a fainter texture's reading). The sidecar counts the readings of each model
     (``<model>_readings``) and why each was taken (``why_<reason>``, :data:`REASONS`).
 
     On a lossy stream (``codec_crf``) a texture reading's sigma also holds the error the codec
@@ -1779,12 +1782,8 @@ class DeepFlow(DenseMethod):
         strong = region.strong_texture
         beside_frozen = frozen and self._band_texture(region)
         if strong or beside_frozen:
-            start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
-            texture = None if start is None else self._texture_fit(region, current, start)
-            if texture is not None and texture.converged and all(np.isfinite(texture.sigma_px)):
-                affine = region.texture_reading(texture)
-            else:
-                texture = None
+            texture = self._fit_from_dense(region, current, dense_u, dense_v)
+            affine = None if texture is None else region.texture_reading(texture)
             # (Frames are lossless where the bias correction is on: see bias_correction.)
             deforms = _deforms(region, dense_u, dense_v, lossless=self._bias_on)
         strong = strong or (beside_frozen and affine is not None)  # (its fit failed: the outline)
@@ -1828,7 +1827,7 @@ class DeepFlow(DenseMethod):
         chosen, model, reason = _choose(affine, outline, strong, deforms)
         if reason == "dense_only" and imprecise and not (region.strong_texture or beside_frozen) and (
                 faint := self._faint_texture(reference, current, region, dense_u, dense_v)) is not None:
-            (texture, chosen), model, reason = faint, "affine", "texture_outline_imprecise"
+            (texture, chosen), model, reason = faint, "affine", "faint_texture"
         if reason == "dense_only":
             self._dense_along(reference, current, flow, region)
         if reason == "dense_deforms":
@@ -1861,7 +1860,7 @@ class DeepFlow(DenseMethod):
                     (region.rows, region.cols, refined[2].astype(np.float32), refined[3].astype(np.float32))]
         self.counts["along_texture"] += model == "outline" and region.along_texture
         region.read_by = model
-        if self._chaining and reason != "texture_outline_imprecise":  # (the faint texture's next frame: in full)
+        if self._chaining and reason != "faint_texture":  # (the faint texture's next frame: in full)
             self._key(region, model, chosen, fit, along, texture, strong)
         return chosen
 
@@ -1880,17 +1879,23 @@ class DeepFlow(DenseMethod):
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
             region.key_rms = texture.rms
 
+    def _fit_from_dense(self, region: _Region, current: np.ndarray, dense_u: np.ndarray,
+                        dense_v: np.ndarray) -> RegionMotion | None:
+        """The region's texture fit (:meth:`_texture_fit`) started from the affine field of the dense
+        flow at its POIs (``dense_u``, ``dense_v``); None where that has too few finite values or
+        the fit does not converge to a finite sigma."""
+        start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
+        found = None if start is None else self._texture_fit(region, current, start)
+        return found if found is not None and found.converged and all(np.isfinite(found.sigma_px)) else None
+
     def _faint_texture(self, reference: np.ndarray, current: np.ndarray, region: _Region,
                        dense_u: np.ndarray, dense_v: np.ndarray) -> tuple[RegionMotion, tuple] | None:
         """The fit of a region's texture too faint to be trusted over an outline, and its reading,
         where it replaces the dense flow's (``dense_u``, ``dense_v`` at the POIs) after the outline
         was refused as too imprecise (see FAINT_TEXTURE_MAX_SIGMA_PX); None where the region has no
         texture to fit, the fit fails, or it is not precise enough or matches worse."""
-        if region.texture is None:
-            return None
-        start = region.texture.params_from_flow(dense_u, dense_v, region.rows, region.cols)
-        found = None if start is None else self._texture_fit(region, current, start)
-        if found is None or not (found.converged and all(np.isfinite(found.sigma_px))):
+        found = None if region.texture is None else self._fit_from_dense(region, current, dense_u, dense_v)
+        if found is None:
             return None
         reading = region.texture_reading(found)
         if max(self._reported_sigma(region, reading[2], reading=False)) > FAINT_TEXTURE_MAX_SIGMA_PX:
