@@ -1860,7 +1860,7 @@ class DeepFlow(DenseMethod):
                     (region.rows, region.cols, refined[2].astype(np.float32), refined[3].astype(np.float32))]
         self.counts["along_texture"] += model == "outline" and region.along_texture
         region.read_by = model
-        if self._chaining and reason != "faint_texture":  # (the faint texture's next frame: in full)
+        if self._chaining:
             self._key(region, model, chosen, fit, along, texture, strong)
         return chosen
 
@@ -1870,12 +1870,15 @@ class DeepFlow(DenseMethod):
         """Make a full measurement that took the outline or the texture's affine fit (``model``,
         its reading ``chosen``, the ``fit`` or ``texture`` it came from) the key of a chain its next
         frames are tracked from (see :meth:`_track`): not an outline whose along-member motion
-        moved where the texture is ``strong``, nor a texture fit of a region with a rim."""
+        moved where the texture is ``strong``, nor a texture fit of a region with a rim, nor one of
+        a texture that is not ``strong`` (strong, or just short of it beside a frozen outline: the
+        textures a tracked frame reads; a fainter one read in place of the dense flow, see
+        FAINT_TEXTURE_MAX_SIGMA_PX, has its next frame measured in full)."""
         if model == "outline" and not (strong and _along_moves(along, chosen[2])):
             region.model, region.theta, region.key_along = "outline", fit.params, along
             region.key_outline = (fit.model, fit.systematic, fit.spread, fit.reported_systematic)
             region.key_ambiguity = region.along_ambiguity
-        elif model == "affine" and not region.rim_rows.size:  # (see _Region.rim_rows)
+        elif model == "affine" and strong and not region.rim_rows.size:  # (see _Region.rim_rows)
             region.model, region.affine, region.key_residual = "affine", texture.params, texture.residual
             region.key_rms = texture.rms
 
